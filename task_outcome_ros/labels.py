@@ -1,0 +1,75 @@
+"""The one vocabulary: class ids, outcome names, colours and the presence rule (CONTRACTS §3).
+
+Training, evaluation, the node and the tools all import these; never copy a constant.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+BACKGROUND = 0
+CONTAINER = 1
+SUCCESS = 2
+FELL_OUTSIDE = 3
+STUCK_ON_RIM = 4
+IGNORE = 255
+
+NUM_CLASSES = 5
+CLASS_NAMES: tuple[str, ...] = ("background", "container", "success", "fell_outside",
+                                "stuck_on_rim")
+# The three outcomes, in label-id order; their label id is OUTCOME_IDS[name].
+OUTCOME_NAMES: tuple[str, ...] = ("success", "fell_outside", "stuck_on_rim")
+OUTCOME_IDS: dict[str, int] = {"success": SUCCESS, "fell_outside": FELL_OUTSIDE,
+                               "stuck_on_rim": STUCK_ON_RIM}
+FAILURE_OUTCOMES: tuple[str, ...] = ("fell_outside", "stuck_on_rim")
+
+# RGB colours for overlays and figures (paper Fig. 1: green success, yellow/red failures).
+CLASS_COLOURS: dict[int, tuple[int, int, int]] = {
+    BACKGROUND: (0, 0, 0),
+    CONTAINER: (70, 130, 255),
+    SUCCESS: (40, 200, 60),
+    FELL_OUTSIDE: (255, 210, 0),
+    STUCK_ON_RIM: (230, 30, 30),
+    IGNORE: (110, 110, 110),
+}
+
+# Presence rule: at least PRESENCE_MIN_PIXELS labelled pixels at 640 x 480, scaled with area.
+PRESENCE_MIN_PIXELS = 50
+REFERENCE_PIXELS = 640 * 480
+
+
+def label_table() -> dict[str, int]:
+    """Class name -> id; stored in checkpoints so a mismatch with this code is caught."""
+    return {name: i for i, name in enumerate(CLASS_NAMES)}
+
+
+def presence_threshold(height: int, width: int,
+                       min_pixels: int = PRESENCE_MIN_PIXELS) -> int:
+    """Pixel count an outcome needs to be *present* in an image of this size (>= 1)."""
+    if height <= 0 or width <= 0:
+        raise ValueError(f"image size must be positive, got {height} x {width}")
+    if min_pixels < 1:
+        raise ValueError(f"presence min_pixels must be >= 1, got {min_pixels}")
+    return max(1, int(round(min_pixels * height * width / REFERENCE_PIXELS)))
+
+
+def outcome_pixel_counts(labels: np.ndarray) -> dict[str, int]:
+    """Number of pixels per outcome in a label image."""
+    counts = np.bincount(np.asarray(labels, dtype=np.uint8).ravel(), minlength=256)
+    return {name: int(counts[OUTCOME_IDS[name]]) for name in OUTCOME_NAMES}
+
+
+def outcomes_present(labels: np.ndarray, min_pixels: int = PRESENCE_MIN_PIXELS,
+                     ) -> dict[str, bool]:
+    """The paper's presence decision for each outcome (threshold scaled to the image size)."""
+    h, w = labels.shape[:2]
+    threshold = presence_threshold(h, w, min_pixels)
+    return {name: n >= threshold for name, n in outcome_pixel_counts(labels).items()}
+
+
+def colourise(labels: np.ndarray) -> np.ndarray:
+    """Label image -> RGB uint8 image using CLASS_COLOURS (unknown ids black)."""
+    lut = np.zeros((256, 3), np.uint8)
+    for class_id, rgb in CLASS_COLOURS.items():
+        lut[class_id] = rgb
+    return lut[np.asarray(labels, dtype=np.uint8)]

@@ -1,0 +1,233 @@
+"""Frozen, validated configs, one per stage. Defaults are the nominal scene of CONTRACTS §1/§4.
+
+Every run saves the resolved configs (``config.json`` in the run folder) and every checkpoint
+embeds them, so a run can be reproduced from its own files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A config value outside its allowed range; the message names the field and the range."""
+
+
+def _check_range(owner: str, name: str, value: float, lo: float, hi: float) -> None:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi):
+        raise ConfigError(f"{owner}.{name} = {value!r} is outside the allowed range [{lo}, {hi}]")
+
+
+def _check_interval(owner: str, name: str, interval: tuple[float, float], lo: float,
+                    hi: float) -> None:
+    if len(interval) != 2:
+        raise ConfigError(f"{owner}.{name} must be a (min, max) pair, got {interval!r}")
+    a, b = interval
+    _check_range(owner, f"{name}[0]", a, lo, hi)
+    _check_range(owner, f"{name}[1]", b, lo, hi)
+    if a > b:
+        raise ConfigError(f"{owner}.{name} = {interval!r}: min must not exceed max")
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """The simulated place task (CONTRACTS §1) and its physics domain randomisation."""
+
+    container_inner_size: float = 1.0     # m, inner footprint side
+    wall_thickness: float = 0.02          # m
+    wall_height: float = 0.25             # m, floor to rim top
+    bottom_thickness: float = 0.02        # m, container floor slab
+    min_objects: int = 1
+    max_objects: int = 4
+    object_edge: tuple[float, float] = (0.08, 0.30)   # m, per axis, uniform
+    release_above_rim: float = 1.5        # m, object centre above the rim top
+    release_offset: float = 0.6           # m, x and y uniform in [-offset, offset]
+    # Domain randomisation of the physics and the container pose.
+    container_yaw_deg: tuple[float, float] = (-45.0, 45.0)   # square: 90 deg covers all yaws
+    floor_height: tuple[float, float] = (-0.05, 0.05)        # m
+    object_mass: tuple[float, float] = (0.1, 2.0)            # kg
+    friction: tuple[float, float] = (0.3, 1.0)
+    restitution: tuple[float, float] = (0.0, 0.4)
+    # Integration and the end of an episode.
+    timestep: float = 1.0 / 240.0
+    solver_iterations: int = 10
+    max_episode_time: float = 8.0         # s; objects still moving then are recorded unsettled
+    rest_linear_speed: float = 0.01       # m/s
+    rest_angular_speed: float = 0.05      # rad/s
+    rest_hold_time: float = 0.25          # s every object must stay below both speeds
+
+    @property
+    def rim_height(self) -> float:
+        return self.wall_height
+
+    @property
+    def release_height(self) -> float:
+        return self.wall_height + self.release_above_rim
+
+    def validate(self) -> "SceneConfig":
+        o = "scene"
+        _check_range(o, "container_inner_size", self.container_inner_size, 0.2, 5.0)
+        _check_range(o, "wall_thickness", self.wall_thickness, 0.002, 0.2)
+        _check_range(o, "wall_height", self.wall_height, 0.05, 1.0)
+        _check_range(o, "bottom_thickness", self.bottom_thickness, 0.002, 0.1)
+        _check_range(o, "min_objects", self.min_objects, 1, 8)
+        _check_range(o, "max_objects", self.max_objects, self.min_objects, 8)
+        _check_interval(o, "object_edge", self.object_edge, 0.01, 1.0)
+        _check_range(o, "release_above_rim", self.release_above_rim, 0.1, 5.0)
+        _check_range(o, "release_offset", self.release_offset, 0.0, 3.0)
+        _check_interval(o, "container_yaw_deg", self.container_yaw_deg, -180.0, 180.0)
+        _check_interval(o, "floor_height", self.floor_height, -1.0, 1.0)
+        _check_interval(o, "object_mass", self.object_mass, 0.01, 100.0)
+        _check_interval(o, "friction", self.friction, 0.0, 5.0)
+        _check_interval(o, "restitution", self.restitution, 0.0, 1.0)
+        _check_range(o, "timestep", self.timestep, 1e-4, 0.05)
+        _check_range(o, "solver_iterations", self.solver_iterations, 1, 1000)
+        _check_range(o, "max_episode_time", self.max_episode_time, 0.5, 120.0)
+        return self
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The envelope camera draws come from (CONTRACTS §4). Ranges may only shrink it."""
+
+    width: int = 640
+    height: int = 480
+    focal_px: tuple[float, float] = (525.0, 590.0)
+    principal_offset_px: float = 8.0      # |cx - W/2|, |cy - H/2| at most this
+    distance: tuple[float, float] = (1.6, 2.4)        # m, camera to look-at point
+    elevation_deg: tuple[float, float] = (40.0, 65.0)  # above the horizontal
+    target_offset: float = 0.1            # m, look-at point within this of the container centre
+
+    def validate(self) -> "CameraConfig":
+        o = "camera"
+        _check_range(o, "width", self.width, 16, 4096)
+        _check_range(o, "height", self.height, 16, 4096)
+        _check_interval(o, "focal_px", self.focal_px, 525.0, 590.0)
+        _check_range(o, "principal_offset_px", self.principal_offset_px, 0.0, 8.0)
+        _check_interval(o, "distance", self.distance, 1.6, 2.4)
+        _check_interval(o, "elevation_deg", self.elevation_deg, 40.0, 65.0)
+        _check_range(o, "target_offset", self.target_offset, 0.0, 0.1)
+        return self
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Kinect-v1 structured-light noise (see training/noise.py for the models and citations)."""
+
+    enabled: bool = True
+    baseline: float = 0.075               # m, IR projector to IR camera
+    disparity_subpixel: int = 8           # disparity quantised to 1/8 px
+    sigma_disparity_px: float = 0.07      # axial noise in disparity -> sigma_z grows with z^2
+    lateral_sigma_px: float = 0.5         # edge jitter (Handa et al. 2014)
+    grazing_start_deg: float = 60.0       # dropout probability ramps from here ...
+    grazing_full_deg: float = 85.0        # ... to 1 here (angle between ray and normal)
+    speckle_rate: float = 4e-4            # seeds of speckle holes per pixel
+    speckle_max_radius_px: int = 3
+    min_range: float = 0.5                # m
+    max_range: float = 4.5                # m
+
+    def validate(self) -> "NoiseConfig":
+        o = "noise"
+        _check_range(o, "baseline", self.baseline, 0.01, 0.5)
+        _check_range(o, "disparity_subpixel", self.disparity_subpixel, 1, 64)
+        _check_range(o, "sigma_disparity_px", self.sigma_disparity_px, 0.0, 2.0)
+        _check_range(o, "lateral_sigma_px", self.lateral_sigma_px, 0.0, 5.0)
+        _check_range(o, "grazing_start_deg", self.grazing_start_deg, 0.0, 90.0)
+        _check_range(o, "grazing_full_deg", self.grazing_full_deg, self.grazing_start_deg, 90.0)
+        _check_range(o, "speckle_rate", self.speckle_rate, 0.0, 0.05)
+        _check_range(o, "speckle_max_radius_px", self.speckle_max_radius_px, 0, 20)
+        _check_range(o, "min_range", self.min_range, 0.0, 10.0)
+        _check_range(o, "max_range", self.max_range, self.min_range, 20.0)
+        return self
+
+
+@dataclass(frozen=True)
+class DiscoverConfig:
+    """DBSCAN on the final object states (see training/discover.py for the features)."""
+
+    eps: float = 0.05
+    min_samples: int = 10
+
+    def validate(self) -> "DiscoverConfig":
+        _check_range("discover", "eps", self.eps, 1e-4, 10.0)
+        _check_range("discover", "min_samples", self.min_samples, 1, 10000)
+        return self
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """The whole dataset run: how many episodes, the seed, the split, the parallelism."""
+
+    episodes: int = 10_000
+    seed: int = 0
+    val_fraction: float = 0.05
+    workers: int = 2
+    chunk_size: int = 50                  # episodes per resumable unit of work
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    discover: DiscoverConfig = field(default_factory=DiscoverConfig)
+
+    def validate(self) -> "DatasetConfig":
+        _check_range("dataset", "episodes", self.episodes, 1, 10_000_000)
+        _check_range("dataset", "seed", self.seed, 0, 2**63 - 1)
+        _check_range("dataset", "val_fraction", self.val_fraction, 0.0, 0.5)
+        _check_range("dataset", "workers", self.workers, 1, 256)
+        _check_range("dataset", "chunk_size", self.chunk_size, 1, 100_000)
+        self.scene.validate()
+        self.camera.validate()
+        self.noise.validate()
+        self.discover.validate()
+        return self
+
+
+def to_dict(cfg: Any) -> dict:
+    return dataclasses.asdict(cfg)
+
+
+def _from_dict(cls: type, data: dict) -> Any:
+    """Rebuild a (nested) frozen dataclass from a dict; unknown keys are an error."""
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(data) - set(known)
+    if unknown:
+        raise ConfigError(f"{cls.__name__}: unknown field(s) {sorted(unknown)}")
+    kwargs = {}
+    for name, value in data.items():
+        default = getattr(cls(), name) if _has_default(cls, name) else None
+        if dataclasses.is_dataclass(default):
+            kwargs[name] = _from_dict(type(default), value)
+        elif isinstance(value, list):
+            kwargs[name] = tuple(value)
+        else:
+            kwargs[name] = value
+    return cls(**kwargs)
+
+
+def _has_default(cls: type, name: str) -> bool:
+    f = {f.name: f for f in dataclasses.fields(cls)}[name]
+    return f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
+
+
+def dataset_config_from_dict(data: dict) -> DatasetConfig:
+    return _from_dict(DatasetConfig, data).validate()
+
+
+def save_json(path: Path, data: Any) -> None:
+    """Write JSON atomically (temp file + rename) so an interrupted run never leaves half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    tmp.replace(path)
+
+
+def load_json(path: Path) -> Any:
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist: run the stage that writes it first")
+    return json.loads(path.read_text())
