@@ -1,0 +1,241 @@
+"""Depth image in, outcome labels and a per-outcome summary out: the one inference path.
+
+Training, evaluation and the ROS node all go through ``preprocess`` (model.py) and
+``OutcomeSegmenter.segment`` / ``predict_labels`` here, so what is measured offline is what
+runs on the robot. The network runs at the checkpoint's working size; its argmax labels are
+resized back to the input size (nearest) and the presence rule of labels.py is applied to
+the full-size label image.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+from task_outcome_ros.checkpoint import CheckpointError, LoadedCheckpoint, load, resolve_device
+from task_outcome_ros.depth import sanitize_depth
+from task_outcome_ros.labels import (
+    CLASS_NAMES,
+    OUTCOME_IDS,
+    OUTCOME_NAMES,
+    PRESENCE_MIN_PIXELS,
+    outcome_pixel_counts,
+    outcomes_present,
+    presence_threshold,
+)
+from task_outcome_ros.model import preprocess, preprocess_batch, preprocess_sanitized
+
+__all__ = ["DetectedObject", "OutcomeResult", "OutcomeSegmenter", "count_objects",
+           "default_model_path", "predict_labels", "preprocess", "preprocess_batch"]
+
+MODEL_FILE = "outcome_fcn.pt"
+# How to make the shipped checkpoint; quoted in the error when it is missing.
+TRAIN_HINT = ("train one with `python -m training train` (it writes "
+              f"task_outcome_ros/models/{MODEL_FILE}), or pass model_path")
+BACKENDS = ("auto", "torch", "onnx")
+
+
+@dataclass
+class DetectedObject:
+    """One connected component (8-connected) of an outcome class."""
+
+    outcome: str
+    pixel_count: int
+    centroid_px: tuple[float, float]    # (u, v) in input pixels
+    median_depth_m: float | None        # from the input depth under the component
+
+
+@dataclass
+class OutcomeResult:
+    labels: np.ndarray                  # uint8 H x W, same size as the input, labels.py ids
+    present: dict[str, bool]            # per outcome, labels.outcomes_present rule
+    pixel_counts: dict[str, int]
+    objects: dict[str, list[DetectedObject]]  # components >= the presence threshold
+    inference_ms: float
+
+
+def default_model_path() -> Path:
+    """The checkpoint shipped inside the package (pip, editable and colcon installs)."""
+    try:
+        root = Path(str(importlib.resources.files("task_outcome_ros")))
+    except (ModuleNotFoundError, TypeError):
+        root = Path(__file__).resolve().parent
+    return root / "models" / MODEL_FILE
+
+
+@torch.inference_mode()
+def predict_labels(model: nn.Module, batch: torch.Tensor) -> torch.Tensor:
+    """(N, 2, h, w) preprocessed batch -> (N, h, w) uint8 class ids (argmax of the logits)."""
+    if batch.dim() != 4:
+        raise ValueError(f"batch must be (N, 2, h, w), got shape {tuple(batch.shape)}")
+    return model(batch).argmax(1).to(torch.uint8)
+
+
+def count_objects(labels: np.ndarray, outcome_id: int, min_pixels: int,
+                  depth_m: np.ndarray | None = None) -> list[DetectedObject]:
+    """Connected components of ``outcome_id`` with at least ``min_pixels`` pixels.
+
+    ``depth_m`` (same size, NaN invalid) gives each object's median depth. Components are
+    sorted by size, largest first.
+    """
+    if not 0 <= outcome_id < len(CLASS_NAMES):
+        raise ValueError(f"outcome_id must be a class id in [0, {len(CLASS_NAMES)}), "
+                         f"got {outcome_id}")
+    labels = np.asarray(labels)
+    if depth_m is not None and depth_m.shape != labels.shape[:2]:
+        raise ValueError(f"depth shape {depth_m.shape} != labels shape {labels.shape}")
+    mask = (labels == outcome_id).astype(np.uint8)
+    n, cc, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    found = []
+    for k in range(1, n):
+        area = int(stats[k, cv2.CC_STAT_AREA])
+        if area < min_pixels:
+            continue
+        median = None
+        if depth_m is not None:
+            x, y = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
+            w, h = stats[k, cv2.CC_STAT_WIDTH], stats[k, cv2.CC_STAT_HEIGHT]
+            values = depth_m[y:y + h, x:x + w][cc[y:y + h, x:x + w] == k]
+            values = values[np.isfinite(values) & (values > 0)]
+            median = float(np.median(values)) if values.size else None
+        found.append(DetectedObject(
+            outcome=CLASS_NAMES[outcome_id], pixel_count=area,
+            centroid_px=(float(centroids[k, 0]), float(centroids[k, 1])),
+            median_depth_m=median))
+    found.sort(key=lambda o: -o.pixel_count)
+    return found
+
+
+def _validate_depth(depth_m: Any) -> np.ndarray:
+    arr = np.asarray(depth_m)
+    if arr.ndim != 2:
+        raise ValueError(f"depth must be a 2-D array (H x W), got shape {arr.shape}")
+    if arr.dtype == np.bool_ or not (np.issubdtype(arr.dtype, np.floating)
+                                     or np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"depth must be a numeric array (float metres), got dtype {arr.dtype}")
+    if arr.size == 0:
+        raise ValueError(f"depth image is empty (shape {arr.shape})")
+    return arr
+
+
+class OutcomeSegmenter:
+    """Loads a checkpoint once; ``segment(depth_m)`` labels one depth image.
+
+    backend: 'torch', 'onnx' (onnxruntime on the ``.onnx`` beside the checkpoint, which must
+    have been exported from this very checkpoint) or 'auto' (ONNX when that holds and the
+    device is the CPU, else torch). ``backend_reason`` says why a backend was chosen.
+    ``num_threads`` (optional) sets torch's global intra-op threads and onnxruntime's.
+    """
+
+    def __init__(self, model_path: str | Path | None = None, device: str = "cpu",
+                 presence_min_pixels: int = PRESENCE_MIN_PIXELS, backend: str = "auto",
+                 num_threads: int | None = None) -> None:
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if isinstance(presence_min_pixels, bool) or not isinstance(presence_min_pixels, int) \
+                or presence_min_pixels < 1:
+            raise ValueError(f"presence_min_pixels must be an int >= 1, "
+                             f"got {presence_min_pixels!r}")
+        if model_path is None:
+            path = default_model_path()
+            if not path.is_file():
+                raise CheckpointError(f"no trained model at the default path {path}: "
+                                      f"{TRAIN_HINT}")
+        else:
+            path = Path(model_path)
+        if num_threads is not None:
+            torch.set_num_threads(int(num_threads))
+        self.device = resolve_device(device)
+        self.checkpoint: LoadedCheckpoint = load(path, device=str(self.device))
+        self.model = self.checkpoint.model
+        self.input_size = self.checkpoint.input_size
+        self.normalisation = self.checkpoint.normalisation
+        self.presence_min_pixels = presence_min_pixels
+        self._session = None
+        self.backend, self.backend_reason = self._choose_backend(backend, num_threads)
+
+    @property
+    def model_path(self) -> Path:
+        return self.checkpoint.path
+
+    def _choose_backend(self, backend: str, num_threads: int | None) -> tuple[str, str]:
+        if backend == "torch":
+            return "torch", "requested"
+        from task_outcome_ros.onnx_export import META_SOURCE_SHA256, onnx_path_for, read_metadata
+
+        onnx_path = onnx_path_for(self.checkpoint.path)
+        problem = None
+        if self.device.type != "cpu":
+            problem = f"device is {self.device}, the ONNX backend runs on the CPU"
+        elif not onnx_path.is_file():
+            problem = f"no ONNX file at {onnx_path}"
+        else:
+            try:
+                meta = read_metadata(onnx_path)
+            except Exception as exc:  # corrupt or unreadable ONNX file
+                meta, problem = {}, f"ONNX file {onnx_path} is unreadable: {exc}"
+            if problem is None and meta.get(META_SOURCE_SHA256) != self.checkpoint.sha256:
+                problem = (f"ONNX file {onnx_path} was not exported from {self.checkpoint.path}"
+                           " (checkpoint hash differs); re-run "
+                           "`python -m task_outcome_ros.onnx_export`")
+        if problem is None:
+            try:
+                import onnxruntime as ort
+            except ImportError:
+                problem = "onnxruntime is not installed"
+        if problem is not None:
+            if backend == "onnx":
+                raise CheckpointError(f"backend 'onnx' unavailable: {problem}")
+            return "torch", problem
+        opts = ort.SessionOptions()
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        if num_threads is not None:
+            opts.intra_op_num_threads = int(num_threads)
+        opts.inter_op_num_threads = 1
+        self._session = ort.InferenceSession(str(onnx_path), opts,
+                                             providers=["CPUExecutionProvider"])
+        return "onnx", f"{onnx_path} matches the checkpoint"
+
+    def _predict_small(self, x: np.ndarray) -> np.ndarray:
+        """(2, h, w) network input -> (h, w) uint8 labels at the working size."""
+        if self._session is not None:
+            logits = self._session.run(["logits"], {"input": x[None]})[0][0]
+            return np.argmax(logits, axis=0).astype(np.uint8)
+        batch = torch.from_numpy(x[None]).to(self.device)
+        return predict_labels(self.model, batch)[0].cpu().numpy()
+
+    def segment(self, depth_m: np.ndarray) -> OutcomeResult:
+        """Label one depth image (H x W metres, NaN/0/inf invalid) of any size."""
+        t0 = time.perf_counter()
+        depth = sanitize_depth(_validate_depth(depth_m))
+        h, w = depth.shape
+        if not np.isfinite(depth).any():
+            labels = np.zeros((h, w), np.uint8)  # defined answer: nothing seen, nothing present
+        else:
+            small = self._predict_small(
+                preprocess_sanitized(depth, self.input_size, self.normalisation))
+            labels = small if small.shape == (h, w) else cv2.resize(
+                small, (w, h), interpolation=cv2.INTER_NEAREST)
+        threshold = presence_threshold(h, w, self.presence_min_pixels)
+        counts = outcome_pixel_counts(labels)
+        present = outcomes_present(labels, self.presence_min_pixels)
+        objects = {name: count_objects(labels, OUTCOME_IDS[name], threshold, depth)
+                   if present[name] else [] for name in OUTCOME_NAMES}
+        return OutcomeResult(labels=labels, present=present, pixel_counts=counts,
+                             objects=objects, inference_ms=(time.perf_counter() - t0) * 1e3)
+
+    def warmup(self, iterations: int = 3) -> None:
+        """Run a few synthetic frames so the first real frame is not slow (allocations)."""
+        w, h = self.input_size
+        plane = np.full((h, w), 2.0, np.float32)
+        plane[h // 4: h // 2, w // 4: w // 2] = 1.8
+        for _ in range(iterations):
+            self.segment(plane)

@@ -1,0 +1,193 @@
+"""The FCN and the one preprocessing path from depth metres to network input.
+
+The network is a compact U-Net: ``levels`` stride-2 stages, skip connections, and a 1x1 head
+with one logit per class of ``labels.py``. It takes any input size (padded to the stride and
+cropped back), but it is trained and run at a fixed working size stored in the checkpoint.
+
+Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every checkpoint):
+
+0. depth: ``clip((z - offset_m) / scale_m, -clip, clip)``; invalid pixels are 0.
+1. validity: fraction of valid input pixels under each working-size pixel, in [0, 1].
+
+``preprocess`` (numpy, one image) and ``preprocess_batch`` (torch, N images) are the only two
+implementations; both read the same normalisation dict, and a test proves they agree.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from task_outcome_ros.depth import sanitize_depth
+from task_outcome_ros.labels import NUM_CLASSES
+
+IN_CHANNELS = 2
+# Cameras sit 1.6-2.4 m from the container (CONTRACTS §4): 2 m maps to 0, a metre to 1.
+# Clip keeps a stray far return (Kinect range tops out at 4.5 m) from dominating activations.
+DEFAULT_NORMALISATION: dict[str, Any] = {
+    "mode": "fixed", "offset_m": 2.0, "scale_m": 1.0, "clip": 4.0, "invalid_value": 0.0}
+DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution
+DEFAULT_MODEL_ARGS: dict[str, Any] = {
+    "in_channels": IN_CHANNELS, "num_classes": NUM_CLASSES, "base_width": 8, "levels": 4,
+    "decoder_convs": 1}
+
+
+def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
+    """Validate a normalisation dict (from code or a checkpoint); returns it as plain floats."""
+    if not isinstance(norm, dict) or norm.get("mode") != "fixed":
+        raise ValueError(f"normalisation must be a dict with mode 'fixed', got {norm!r}")
+    try:
+        out = {"mode": "fixed", **{k: float(norm[k]) for k in
+                                   ("offset_m", "scale_m", "clip", "invalid_value")}}
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"normalisation {norm!r} lacks a numeric field: {exc}") from None
+    if not (out["scale_m"] > 0 and out["clip"] > 0):
+        raise ValueError(f"normalisation needs scale_m > 0 and clip > 0, got {norm!r}")
+    return out
+
+
+def check_input_size(size: Any) -> tuple[int, int]:
+    """(W, H) of positive ints."""
+    try:
+        w, h = (int(v) for v in size)
+    except (TypeError, ValueError):
+        raise ValueError(f"input_size must be (W, H), got {size!r}") from None
+    if w < 1 or h < 1:
+        raise ValueError(f"input_size must be positive, got {size!r}")
+    return w, h
+
+
+def resize_depth(depth_m: np.ndarray, input_size: tuple[int, int],
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """NaN-aware area resize: (mean of the valid depths, valid fraction) per output pixel.
+
+    ``depth_m`` must already be sanitised (float32, NaN invalid). Invalid output pixels (no
+    valid input under them) get depth 0 and fraction 0.
+    """
+    w, h = input_size
+    valid = np.isfinite(depth_m)
+    filled = np.where(valid, depth_m, np.float32(0)).astype(np.float32, copy=False)
+    mask = valid.astype(np.float32)
+    if depth_m.shape != (h, w):
+        # INTER_AREA averages when shrinking; on enlargement it is bilinear, still NaN-aware.
+        filled = cv2.resize(filled, (w, h), interpolation=cv2.INTER_AREA)
+        mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_AREA)
+    frac = np.clip(mask, 0.0, 1.0)
+    has = frac > 1e-6
+    depth = np.zeros_like(filled)
+    np.divide(filled, frac, out=depth, where=has)
+    frac = np.where(has, frac, np.float32(0))
+    return depth, frac.astype(np.float32, copy=False)
+
+
+def preprocess(depth_m: np.ndarray, input_size: tuple[int, int],
+               normalisation: dict[str, Any] | None = None) -> np.ndarray:
+    """Depth image (H x W metres, NaN/<=0/inf invalid) -> network input (2, h, w) float32."""
+    return preprocess_sanitized(sanitize_depth(depth_m), input_size, normalisation)
+
+
+def preprocess_sanitized(depth_m: np.ndarray, input_size: tuple[int, int],
+                         normalisation: dict[str, Any] | None = None) -> np.ndarray:
+    """``preprocess`` for a depth image already through ``depth.sanitize_depth``."""
+    norm = check_normalisation(normalisation or DEFAULT_NORMALISATION)
+    depth, frac = resize_depth(depth_m, check_input_size(input_size))
+    z = np.clip((depth - norm["offset_m"]) / norm["scale_m"], -norm["clip"], norm["clip"])
+    z = np.where(frac > 0, z, np.float32(norm["invalid_value"]))
+    return np.stack([z, frac]).astype(np.float32, copy=False)
+
+
+def preprocess_batch(depth_m: torch.Tensor, input_size: tuple[int, int],
+                     normalisation: dict[str, Any] | None = None) -> torch.Tensor:
+    """Torch twin of ``preprocess`` for (N, H, W) or (H, W) metre tensors -> (N, 2, h, w).
+
+    Identical to ``preprocess`` when the size is unchanged or shrinks by an integer factor
+    (e.g. 640 x 480 -> 160 x 120); for other factors torch's area resize differs from
+    OpenCV's by the resampling kernel only. Use ``preprocess`` in datasets when in doubt.
+    """
+    norm = check_normalisation(normalisation or DEFAULT_NORMALISATION)
+    w, h = check_input_size(input_size)
+    d = depth_m.float()
+    if d.dim() == 2:
+        d = d[None]
+    if d.dim() != 3:
+        raise ValueError(f"depth batch must be (N, H, W), got shape {tuple(depth_m.shape)}")
+    valid = torch.isfinite(d) & (d > 0)
+    filled = torch.where(valid, d, torch.zeros_like(d))[:, None]
+    mask = valid.float()[:, None]
+    if tuple(d.shape[-2:]) != (h, w):
+        filled = F.interpolate(filled, size=(h, w), mode="area")
+        mask = F.interpolate(mask, size=(h, w), mode="area")
+    frac = mask.clamp(0.0, 1.0)
+    has = frac > 1e-6
+    depth = torch.where(has, filled / frac.clamp_min(1e-6), torch.zeros_like(filled))
+    z = ((depth - norm["offset_m"]) / norm["scale_m"]).clamp(-norm["clip"], norm["clip"])
+    z = torch.where(has, z, torch.full_like(z, norm["invalid_value"]))
+    return torch.cat([z, torch.where(has, frac, torch.zeros_like(frac))], dim=1)
+
+
+def _conv_block(c_in: int, c_out: int, n_convs: int = 2) -> nn.Sequential:
+    """n x (3x3 conv + BatchNorm + ReLU); BN runs in eval mode at inference, ORT fuses it."""
+    layers: list[nn.Module] = []
+    for i in range(n_convs):
+        layers += [nn.Conv2d(c_in if i == 0 else c_out, c_out, 3, padding=1, bias=False),
+                   nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)]
+    return nn.Sequential(*layers)
+
+
+class OutcomeFCN(nn.Module):
+    """U-Net-style FCN: depth + validity in, ``num_classes`` logits per pixel out.
+
+    Widths double per level: base_width * 2**i for i in 0..levels; encoder blocks have two
+    convs, decoder blocks ``decoder_convs`` (one keeps the net inside the CPU budget). The
+    input is zero-padded
+    (zero = invalid) to a multiple of 2**levels and the logits are cropped back.
+    """
+
+    def __init__(self, in_channels: int = IN_CHANNELS, num_classes: int = NUM_CLASSES,
+                 base_width: int = 8, levels: int = 4, decoder_convs: int = 1) -> None:
+        super().__init__()
+        if not (1 <= levels <= 6 and 2 <= base_width <= 256 and 1 <= decoder_convs <= 2):
+            raise ValueError(f"need 1 <= levels <= 6, 2 <= base_width <= 256 and "
+                             f"decoder_convs in (1, 2), got levels={levels} "
+                             f"base_width={base_width} decoder_convs={decoder_convs}")
+        self.levels = levels
+        widths = [base_width * 2 ** i for i in range(levels + 1)]
+        self.stem = _conv_block(in_channels, widths[0])
+        self.down = nn.ModuleList(_conv_block(widths[i], widths[i + 1]) for i in range(levels))
+        self.up = nn.ModuleList(
+            nn.ConvTranspose2d(widths[i + 1], widths[i], 2, stride=2) for i in range(levels))
+        self.fuse = nn.ModuleList(_conv_block(2 * widths[i], widths[i], decoder_convs)
+                                  for i in range(levels))
+        self.head = nn.Conv2d(widths[0], num_classes, 1)
+
+    @property
+    def stride(self) -> int:
+        return 1 << self.levels
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h, w = x.shape[-2], x.shape[-1]
+        s = self.stride
+        pad_h, pad_w = (s - h % s) % s, (s - w % s) % s
+        if pad_h or pad_w:
+            x = F.pad(x, (0, pad_w, 0, pad_h))
+        skips = [self.stem(x)]
+        for block in self.down:
+            skips.append(block(F.max_pool2d(skips[-1], 2)))
+        y = skips.pop()
+        for i in reversed(range(self.levels)):
+            y = self.fuse[i](torch.cat([self.up[i](y), skips[i]], dim=1))
+        return self.head(y)[..., :h, :w]
+
+
+def build_model(model_args: dict[str, Any]) -> OutcomeFCN:
+    """Rebuild the network from the constructor arguments stored in a checkpoint."""
+    return OutcomeFCN(**model_args)
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())

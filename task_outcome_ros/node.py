@@ -1,0 +1,453 @@
+"""The rclpy edge (CONTRACTS §5): depth image in -> labels, status, overlay (and markers) out.
+
+The only module of the package that imports rclpy. It converts messages to arrays and back and
+calls ``inference.OutcomeSegmenter``; everything it knows about depth and labels comes from
+``depth.py`` and ``labels.py``.
+
+Real time: the subscription callback only keeps the newest image (an overwritten, never
+processed one counts as dropped); one worker thread processes whatever is newest, so a slow
+model lags by at most one frame and memory never grows. Bad frames are reported (throttled
+warning + ERROR status with the frame's header) and skipped; bad parameters or a bad model stop
+the node at start-up with a FATAL message naming what to fix.
+"""
+
+from __future__ import annotations
+
+import array
+import math
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from task_outcome_ros import labels as L
+from task_outcome_ros.depth import DepthDecodeError, decode_depth
+
+NODE_NAME = "outcome_node"
+STATUS_NAME = "task_outcome"
+QOS_CHOICES = ("sensor_data", "reliable")
+DEVICE_CHOICES = ("cpu", "cuda", "auto")
+BACKEND_CHOICES = ("auto", "torch", "onnx")
+WARN_THROTTLE_S = 2.0
+MARKER_DIAMETER_M = 0.1
+
+
+class StartupError(Exception):
+    """A parameter or model problem that must stop the node; the text says what to fix."""
+
+
+@dataclass(frozen=True)
+class _ParamSpec:
+    default: Any
+    description: str
+    read_only: bool
+    hint: str  # what a valid value looks like, for the FATAL message
+
+
+PARAMS: dict[str, _ParamSpec] = {
+    "model_path": _ParamSpec(
+        "", "Checkpoint (.pt) or ONNX model file; '' = the checkpoint shipped in the package.",
+        True, "a readable checkpoint file, or '' for the shipped model"),
+    "device": _ParamSpec(
+        "cpu", "Torch device: 'cpu', 'cuda' or 'auto' (cuda when available).",
+        True, f"one of {', '.join(DEVICE_CHOICES)}"),
+    "backend": _ParamSpec(
+        "auto", "Inference backend: 'auto', 'torch' or 'onnx' (onnxruntime).",
+        True, f"one of {', '.join(BACKEND_CHOICES)}"),
+    "presence_min_pixels": _ParamSpec(
+        L.PRESENCE_MIN_PIXELS,
+        "Pixels an outcome needs to count as present at 640x480 (scaled with image area).",
+        True, "an integer >= 1 (default 50)"),
+    "publish_overlay": _ParamSpec(
+        True, "Publish outcome/overlay (rgb8 colourised depth with the labels blended in).",
+        False, "true or false"),
+    "overlay_alpha": _ParamSpec(
+        0.5, "Weight of the label colours in outcome/overlay, 0 (depth only) to 1 (labels only).",
+        False, "a floating-point number in [0.0, 1.0], e.g. 0.5"),
+    "publish_markers": _ParamSpec(
+        True, "Publish outcome/markers: a sphere at each failure object's 3-D centroid "
+              "(needs depth/camera_info).",
+        False, "true or false"),
+    "qos": _ParamSpec(
+        "sensor_data", "QoS of the depth/image_raw and depth/camera_info subscriptions: "
+                       "'sensor_data' (best effort, keep last 5) or 'reliable' (keep last 5). "
+                       "Outputs are always reliable (keep last 5) so any subscriber matches.",
+        True, f"one of {', '.join(QOS_CHOICES)}"),
+}
+
+
+def subscription_qos(name: str) -> QoSProfile:
+    """The input QoS for the `qos` parameter value."""
+    if name == "sensor_data":
+        return qos_profile_sensor_data
+    if name == "reliable":
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
+                          reliability=ReliabilityPolicy.RELIABLE)
+    raise ValueError(f"qos must be one of {QOS_CHOICES}, got {name!r}")
+
+
+OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
+                        reliability=ReliabilityPolicy.RELIABLE)
+
+
+# --- pure helpers (numpy in, numpy/str out) -------------------------------------------------
+
+def colourise_depth(depth_m: np.ndarray) -> np.ndarray:
+    """float metres (NaN invalid) -> RGB uint8; near warm, far cool, invalid grey."""
+    valid = np.isfinite(depth_m)
+    rgb = np.empty(depth_m.shape + (3,), np.uint8)
+    rgb[:] = L.CLASS_COLOURS[L.IGNORE]
+    if valid.any():
+        # Robust range from a subsample: a full-image percentile costs ~10 ms at 640 x 480.
+        step = max(1, int(math.sqrt(depth_m.size / 20_000)))
+        sample = depth_m[::step, ::step]
+        sample = sample[np.isfinite(sample)]
+        lo, hi = np.percentile(sample, (1, 99)) if sample.size else np.nanpercentile(
+            depth_m, (1, 99))
+        scale = 255.0 / max(float(hi - lo), 1e-6)
+        grey = cv2.convertScaleAbs(np.where(valid, depth_m, lo), alpha=-scale,
+                                   beta=255.0 + lo * scale)  # near -> 255, far -> 0, saturated
+        turbo = cv2.cvtColor(cv2.applyColorMap(grey, cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
+        np.copyto(rgb, turbo, where=valid[..., None])
+    return rgb
+
+
+def render_overlay(depth_m: np.ndarray, labels: np.ndarray, alpha: float) -> np.ndarray:
+    """Colourised depth with every non-background label blended in at ``alpha``."""
+    out = colourise_depth(depth_m)
+    mask = labels != L.BACKGROUND
+    if alpha > 0 and mask.any():
+        blend = cv2.addWeighted(L.colourise(labels), alpha, out, 1.0 - alpha, 0.0)
+        np.copyto(out, blend, where=mask[..., None])
+    return out
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of the raw image (CameraInfo.K) for one image size."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @classmethod
+    def from_camera_info(cls, msg: CameraInfo) -> Intrinsics:
+        k = [float(v) for v in msg.k]
+        if not all(math.isfinite(v) for v in k) or k[0] <= 0 or k[4] <= 0:
+            raise ValueError(f"camera_info K has no valid focal length (fx={k[0]}, fy={k[4]})")
+        if msg.width <= 0 or msg.height <= 0:
+            raise ValueError(f"camera_info has size {msg.width} x {msg.height}")
+        return cls(int(msg.width), int(msg.height), k[0], k[4], k[2], k[5])
+
+    def back_project(self, u: float, v: float, z: float) -> tuple[float, float, float]:
+        """Pixel (u, v) at depth z (m, along the optical axis) -> optical-frame x, y, z."""
+        return (u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z
+
+
+def status_level(present: dict[str, bool]) -> bytes:
+    """OK when only success (or nothing) is present, WARN when a failure mode is."""
+    if any(present.get(name, False) for name in L.FAILURE_OUTCOMES):
+        return DiagnosticStatus.WARN
+    return DiagnosticStatus.OK
+
+
+def present_message(present: dict[str, bool]) -> str:
+    names = sorted(name for name, is_present in present.items() if is_present)
+    return ",".join(names) if names else "none"
+
+
+# --- the node ---------------------------------------------------------------------------------
+
+class OutcomeNode(Node):
+    """Parameters, QoS and message conversion around an ``OutcomeSegmenter``."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **node_kwargs)
+        self._params = self._declare_and_validate()
+        self._segmenter = self._load_segmenter()
+
+        in_qos = subscription_qos(self._params["qos"])
+        self._pub_labels = self.create_publisher(Image, "outcome/labels", OUTPUT_QOS)
+        self._pub_status = self.create_publisher(DiagnosticArray, "outcome/status", OUTPUT_QOS)
+        self._pub_overlay = self.create_publisher(Image, "outcome/overlay", OUTPUT_QOS)
+        self._pub_markers = self.create_publisher(MarkerArray, "outcome/markers", OUTPUT_QOS)
+
+        self._lock = threading.Condition()
+        self._pending: tuple[Image, float] | None = None  # newest unprocessed (msg, t_received)
+        self._dropped = 0
+        self._camera_info: CameraInfo | None = None
+        self._stop = False
+
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.create_subscription(Image, "depth/image_raw", self._on_image, in_qos)
+        self.create_subscription(CameraInfo, "depth/camera_info", self._on_camera_info, in_qos)
+        self._worker = threading.Thread(target=self._work, name="outcome_worker", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"ready: model {self._model_desc}, device {self._params['device']}, "
+            f"backend {self._params['backend']}, qos {self._params['qos']}; listening on "
+            f"{self.resolve_topic_name('depth/image_raw')}")
+
+    # parameters and model ------------------------------------------------------------------
+    def _declare_and_validate(self) -> dict[str, Any]:
+        values: dict[str, Any] = {}
+        for name, spec in PARAMS.items():
+            desc = ParameterDescriptor(name=name, description=spec.description,
+                                       read_only=spec.read_only,
+                                       additional_constraints=f"valid: {spec.hint}")
+            if name == "presence_min_pixels":
+                desc.integer_range = [IntegerRange(from_value=1, to_value=1_000_000, step=1)]
+            elif name == "overlay_alpha":
+                desc.floating_point_range = [
+                    FloatingPointRange(from_value=0.0, to_value=1.0, step=0.0)]
+            try:
+                values[name] = self.declare_parameter(name, spec.default, desc).value
+            except Exception as exc:  # rclpy raises several types for wrong type / range
+                raise StartupError(f"parameter '{name}' has an invalid value: must be "
+                                   f"{spec.hint} ({_exc_reason(exc)})") from None
+        for name, choices in (("device", DEVICE_CHOICES), ("backend", BACKEND_CHOICES),
+                              ("qos", QOS_CHOICES)):
+            if values[name] not in choices:
+                raise StartupError(f"parameter '{name}' is {values[name]!r}: must be "
+                                   f"{PARAMS[name].hint}")
+        return values
+
+    def _load_segmenter(self) -> Any:
+        # Imported here (after parameter checks) so a broken torch install is one FATAL line.
+        try:
+            from task_outcome_ros.checkpoint import CheckpointError
+            from task_outcome_ros.inference import OutcomeSegmenter, default_model_path
+        except ImportError as exc:
+            raise StartupError(f"cannot import the inference stack: {exc}. Install the "
+                               "package's requirements (torch, numpy, opencv).") from None
+        model_path = self._params["model_path"] or None  # None: the segmenter's default
+        self._model_desc = model_path or f"{default_model_path()} (shipped)"
+        try:
+            seg = OutcomeSegmenter(model_path, device=self._params["device"],
+                                   presence_min_pixels=self._params["presence_min_pixels"],
+                                   backend=self._params["backend"])
+            seg.warmup()
+        except (CheckpointError, ValueError, RuntimeError, OSError, ImportError) as exc:
+            raise StartupError(
+                f"cannot use model '{self._model_desc}' (device '{self._params['device']}', "
+                f"backend '{self._params['backend']}'): {exc}. Fix model_path (a checkpoint "
+                "written by `python -m training train`, or '' for the shipped one), device or "
+                "backend.") from None
+        self._model_desc += f" [{seg.backend}: {getattr(seg, 'backend_reason', '')}]"
+        return seg
+
+    def _on_set_parameters(self, params: list) -> SetParametersResult:
+        for p in params:
+            if p.name == "overlay_alpha" and not 0.0 <= float(p.value) <= 1.0:
+                return SetParametersResult(successful=False, reason="overlay_alpha in [0, 1]")
+        for p in params:
+            if p.name in ("publish_overlay", "overlay_alpha", "publish_markers"):
+                self._params[p.name] = p.value
+        return SetParametersResult(successful=True)
+
+    # callbacks (executor thread): store and return ----------------------------------------
+    def _on_image(self, msg: Image) -> None:
+        with self._lock:
+            if self._pending is not None:
+                self._dropped += 1
+            self._pending = (msg, time.monotonic())
+            self._lock.notify()
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        with self._lock:
+            self._camera_info = msg
+
+    # worker thread ---------------------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                while self._pending is None and not self._stop:
+                    self._lock.wait(timeout=0.5)
+                if self._stop:
+                    return
+                (msg, t_received), self._pending = self._pending, None
+                camera_info, dropped = self._camera_info, self._dropped
+            try:
+                self._process(msg, t_received, camera_info, dropped)
+            except Exception as exc:  # never let one frame kill the worker
+                self.get_logger().error(f"unexpected error on a frame: {exc!r}",
+                                        throttle_duration_sec=WARN_THROTTLE_S)
+                self._publish_error(msg.header, f"internal error: {exc}", dropped, t_received)
+
+    def _process(self, msg: Image, t_received: float, camera_info: CameraInfo | None,
+                 dropped: int) -> None:
+        header = msg.header
+        try:
+            depth = decode_depth(msg.encoding, msg.height, msg.width, msg.step,
+                                 bool(msg.is_bigendian), msg.data)
+        except DepthDecodeError as exc:
+            self.get_logger().warning(f"skipping depth frame (frame_id '{header.frame_id}'): "
+                                      f"{exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            self._publish_error(header, f"bad depth image: {exc}", dropped, t_received)
+            return
+        try:
+            res = self._segmenter.segment(depth)
+        except Exception as exc:
+            self.get_logger().error(f"inference failed on a {msg.width} x {msg.height} frame: "
+                                    f"{exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            self._publish_error(header, f"inference failed: {exc}", dropped, t_received)
+            return
+
+        height, width = depth.shape
+        labels = np.ascontiguousarray(res.labels, dtype=np.uint8)
+        self._pub_labels.publish(_image_msg(header, labels, "mono8"))
+
+        intrinsics, camera_note = None, None
+        if camera_info is not None:
+            try:
+                cand = Intrinsics.from_camera_info(camera_info)
+                if (cand.width, cand.height) != (width, height):
+                    raise ValueError(f"camera_info size {cand.width} x {cand.height} does not "
+                                     f"match the image {width} x {height}")
+                intrinsics = cand
+            except ValueError as exc:
+                camera_note = f"ignored for 3-D positions: {exc}"
+                self.get_logger().warning(f"camera_info {camera_note}",
+                                          throttle_duration_sec=WARN_THROTTLE_S)
+
+        values, centroids = self._result_values(res, intrinsics)
+        if camera_note:
+            values.append(KeyValue(key="camera_info", value=camera_note))
+        values += _timing_values(res.inference_ms, dropped, t_received)
+        self._publish_status(header, status_level(res.present), present_message(res.present),
+                             values)
+
+        if self._params["publish_overlay"]:
+            rgb = render_overlay(depth, labels, float(self._params["overlay_alpha"]))
+            self._pub_overlay.publish(_image_msg(header, rgb, "rgb8"))
+        if self._params["publish_markers"]:
+            self._pub_markers.publish(_markers(header, centroids))
+
+    def _result_values(self, res: Any, intrinsics: Intrinsics | None,
+                       ) -> tuple[list[KeyValue], list[tuple[str, int, tuple[float, ...]]]]:
+        values: list[KeyValue] = []
+        centroids: list[tuple[str, int, tuple[float, ...]]] = []
+        for name in L.OUTCOME_NAMES:
+            objects = res.objects.get(name, [])
+            values += [KeyValue(key=f"{name}.present", value=str(bool(res.present[name])).lower()),
+                       KeyValue(key=f"{name}.pixels", value=str(int(res.pixel_counts[name]))),
+                       KeyValue(key=f"{name}.objects", value=str(len(objects)))]
+            if name not in L.FAILURE_OUTCOMES:
+                continue
+            for k, obj in enumerate(objects):
+                u, v = (float(c) for c in obj.centroid_px)
+                values.append(KeyValue(key=f"{name}.{k}.centroid_px", value=f"{u:.1f},{v:.1f}"))
+                z = obj.median_depth_m
+                if intrinsics is not None and z is not None and math.isfinite(z) and z > 0:
+                    xyz = intrinsics.back_project(u, v, float(z))
+                    values.append(KeyValue(key=f"{name}.{k}.centroid_m",
+                                           value=",".join(f"{c:.3f}" for c in xyz)))
+                    centroids.append((name, k, xyz))
+        return values, centroids
+
+    # publishing ------------------------------------------------------------------------------
+    def _publish_status(self, header: Header, level: bytes, message: str,
+                        values: list[KeyValue]) -> None:
+        status = DiagnosticStatus(level=level, name=STATUS_NAME, message=message,
+                                  hardware_id=header.frame_id, values=values)
+        self._pub_status.publish(DiagnosticArray(header=header, status=[status]))
+
+    def _publish_error(self, header: Header, why: str, dropped: int, t_received: float) -> None:
+        self._publish_status(header, DiagnosticStatus.ERROR, why,
+                             _timing_values(None, dropped, t_received))
+
+    def destroy_node(self) -> None:
+        with self._lock:
+            self._stop = True
+            self._lock.notify_all()
+        if self._worker.is_alive():
+            self._worker.join(timeout=5.0)
+        super().destroy_node()
+
+
+def _image_msg(header: Header, pixels: np.ndarray, encoding: str) -> Image:
+    """uint8 H x W (mono8) or H x W x 3 (rgb8) array -> Image with the given header."""
+    height, width = pixels.shape[:2]
+    channels = 1 if pixels.ndim == 2 else pixels.shape[2]
+    # array('B') is the fast path of the generated uint8[] setter (no per-element checks).
+    data = array.array("B", np.ascontiguousarray(pixels, dtype=np.uint8).tobytes())
+    return Image(header=header, height=height, width=width, encoding=encoding,
+                 is_bigendian=0, step=width * channels, data=data)
+
+
+def _timing_values(inference_ms: float | None, dropped: int, t_received: float,
+                   ) -> list[KeyValue]:
+    values = [] if inference_ms is None else [
+        KeyValue(key="inference_ms", value=f"{float(inference_ms):.2f}")]
+    # latency_ms: arrival at the node -> results published (queueing + decode + inference).
+    latency_ms = (time.monotonic() - t_received) * 1e3
+    return values + [KeyValue(key="dropped_frames", value=str(dropped)),
+                     KeyValue(key="latency_ms", value=f"{latency_ms:.2f}")]
+
+
+def _markers(header: Header, centroids: list[tuple[str, int, tuple[float, ...]]],
+             ) -> MarkerArray:
+    """DELETEALL (clears the previous frame's spheres) then one sphere per 3-D centroid."""
+    markers = [Marker(header=header, action=Marker.DELETEALL)]
+    for name, k, (x, y, z) in centroids:
+        r, g, b = L.CLASS_COLOURS[L.OUTCOME_IDS[name]]
+        m = Marker(header=header, ns=name, id=k, type=Marker.SPHERE, action=Marker.ADD,
+                   color=ColorRGBA(r=r / 255.0, g=g / 255.0, b=b / 255.0, a=0.8))
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = x, y, z
+        m.pose.orientation.w = 1.0
+        m.scale.x = m.scale.y = m.scale.z = MARKER_DIAMETER_M
+        markers.append(m)
+    return MarkerArray(markers=markers)
+
+
+def _exc_reason(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return text[-1] if text else type(exc).__name__
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script ``outcome_node``; returns the process exit code."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = OutcomeNode()
+    except StartupError as exc:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        return 1
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

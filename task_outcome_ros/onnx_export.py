@@ -1,0 +1,113 @@
+"""Export a checkpoint to ONNX beside it (``outcome_fcn.pt`` -> ``outcome_fcn.onnx``).
+
+The graph takes the fixed working size of the checkpoint, ``input`` (N, 2, h, w) float32 and
+gives ``logits`` (N, num_classes, h, w). Its metadata records the SHA-256 of the source
+checkpoint, so ``OutcomeSegmenter(backend='auto')`` uses the ONNX file only when it was made
+from exactly that checkpoint.
+
+    python -m task_outcome_ros.onnx_export task_outcome_ros/models/outcome_fcn.pt
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from task_outcome_ros.checkpoint import load
+
+META_SOURCE_SHA256 = "source_checkpoint_sha256"
+META_INPUT_SIZE = "input_size"
+META_FORMAT = "format"
+ONNX_FORMAT = "task_outcome_ros.onnx/1"
+DEFAULT_OPSET = 17
+
+
+def onnx_path_for(checkpoint_path: str | Path) -> Path:
+    """Where the ONNX twin of a checkpoint lives: same folder and stem, ``.onnx``."""
+    return Path(checkpoint_path).with_suffix(".onnx")
+
+
+def read_metadata(onnx_path: str | Path) -> dict[str, str]:
+    """The custom metadata of an ONNX file (empty dict if it has none)."""
+    import onnx
+
+    model = onnx.load(str(onnx_path), load_external_data=False)
+    return {p.key: p.value for p in model.metadata_props}
+
+
+def export_onnx(checkpoint_path: str | Path, onnx_path: str | Path | None = None, *,
+                opset: int = DEFAULT_OPSET, verify: bool = True) -> Path:
+    """Export (legacy TorchScript exporter: no onnxscript needed), tag, check, write atomically.
+
+    With ``verify`` the ONNX graph is run in onnxruntime on a random input and its argmax
+    labels must match torch's on >= 99.9 % of pixels.
+    """
+    import onnx
+
+    ckpt = load(checkpoint_path, device="cpu")
+    out = Path(onnx_path) if onnx_path is not None else onnx_path_for(checkpoint_path)
+    w, h = ckpt.input_size
+    dummy = torch.zeros(1, 2, h, w)
+    buf = tempfile.SpooledTemporaryFile()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # tracer warnings about shape arithmetic in forward()
+        torch.onnx.export(ckpt.model, (dummy,), buf, input_names=["input"],
+                          output_names=["logits"], opset_version=opset, dynamo=False,
+                          dynamic_axes={"input": {0: "batch"}, "logits": {0: "batch"}})
+    buf.seek(0)
+    proto = onnx.load_model_from_string(buf.read())
+    for key, value in ((META_SOURCE_SHA256, ckpt.sha256), (META_INPUT_SIZE, f"{w}x{h}"),
+                       (META_FORMAT, ONNX_FORMAT)):
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.checker.check_model(proto)
+    if verify:
+        _verify(proto.SerializeToString(), ckpt.model, h, w)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(proto.SerializeToString())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return out
+
+
+def _verify(model_bytes: bytes, model: torch.nn.Module, h: int, w: int) -> None:
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(model_bytes, providers=["CPUExecutionProvider"])
+    x = torch.randn(2, 2, h, w, generator=torch.Generator().manual_seed(0))
+    with torch.inference_mode():
+        ref = model(x).argmax(1).numpy()
+    got = sess.run(["logits"], {"input": x.numpy()})[0].argmax(1)
+    agree = float(np.mean(ref == got))
+    if agree < 0.999:
+        raise RuntimeError(f"ONNX export disagrees with torch on {100 * (1 - agree):.2f} % "
+                           "of pixels")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("--out", type=Path, default=None,
+                        help="ONNX path (default: beside the checkpoint, .onnx)")
+    parser.add_argument("--opset", type=int, default=DEFAULT_OPSET)
+    args = parser.parse_args(argv)
+    path = export_onnx(args.checkpoint, args.out, opset=args.opset)
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

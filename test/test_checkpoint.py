@@ -1,0 +1,160 @@
+"""Self-describing checkpoints: round trip, atomic write, and every way load() refuses."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from task_outcome_ros import checkpoint
+from task_outcome_ros.checkpoint import CheckpointError
+from task_outcome_ros.labels import label_table
+from task_outcome_ros.model import DEFAULT_NORMALISATION, OutcomeFCN
+
+ARGS = {"in_channels": 2, "num_classes": 5, "base_width": 4, "levels": 2, "decoder_convs": 1}
+
+
+@dataclasses.dataclass(frozen=True)
+class _TrainConfig:
+    lr: float = 1e-3
+    sizes: tuple[int, int] = (160, 120)
+    out: Path = Path("/tmp/run")
+
+
+def _save(path: Path, **overrides) -> OutcomeFCN:
+    torch.manual_seed(0)
+    model = OutcomeFCN(**ARGS)
+    # Non-trivial BN statistics, so a lost buffer would change the outputs.
+    model.train()
+    with torch.no_grad():
+        model(torch.randn(2, 2, 24, 32))
+    kwargs = dict(model_args=ARGS, input_size=(32, 24), normalisation=DEFAULT_NORMALISATION,
+                  train_config=_TrainConfig(), metrics={"miou": np.float32(0.5), "epoch": 3})
+    kwargs.update(overrides)
+    checkpoint.save(path, model, **kwargs)
+    return model.eval()
+
+
+def _rewrite(path: Path, **changes) -> None:
+    payload = torch.load(path, weights_only=True)
+    payload.update(changes)
+    torch.save(payload, path)
+
+
+def test_round_trip_rebuilds_identical_model(tmp_path: Path) -> None:
+    path = tmp_path / "sub" / "m.pt"
+    model = _save(path, optimizer_state=torch.optim.Adam(OutcomeFCN(**ARGS).parameters())
+                  .state_dict(), extra={"note": "x"})
+    loaded = checkpoint.load(path)
+    assert not loaded.model.training
+    x = torch.randn(1, 2, 24, 32)
+    with torch.inference_mode():
+        assert torch.equal(model(x), loaded.model(x))
+    assert loaded.model_args == ARGS
+    assert loaded.input_size == (32, 24)
+    assert loaded.normalisation == DEFAULT_NORMALISATION
+    assert loaded.label_table == label_table()
+    assert loaded.train_config == {"lr": 1e-3, "sizes": [160, 120], "out": "/tmp/run"}
+    assert loaded.metrics == {"miou": 0.5, "epoch": 3}
+    assert loaded.extra == {"note": "x"} and loaded.optimizer_state is not None
+    assert loaded.format_version == checkpoint.FORMAT_VERSION
+    assert loaded.sha256 == checkpoint.file_sha256(path)
+    assert sorted(p.name for p in path.parent.iterdir()) == ["m.pt"]  # no temp files left
+
+
+def test_save_refuses_non_plain_values(tmp_path: Path) -> None:
+    with pytest.raises(TypeError, match="metrics.bad"):
+        _save(tmp_path / "m.pt", metrics={"bad": object()})
+    assert not any(tmp_path.iterdir())
+
+
+def _assert_error(path: Path, *fragments: str) -> None:
+    with pytest.raises(CheckpointError) as info:
+        checkpoint.load(path)
+    assert isinstance(info.value, ValueError)
+    assert str(path) in str(info.value)
+    for fragment in fragments:
+        assert fragment in str(info.value)
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    _assert_error(tmp_path / "nope.pt", "not found")
+
+
+def test_truncated_file(tmp_path: Path) -> None:
+    path = tmp_path / "m.pt"
+    _save(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    _assert_error(path, "cannot be read")
+
+
+def test_random_bytes(tmp_path: Path) -> None:
+    path = tmp_path / "m.pt"
+    path.write_bytes(np.random.default_rng(0).bytes(4096))
+    _assert_error(path, "cannot be read")
+
+
+@pytest.mark.parametrize("payload", [{"weight": torch.zeros(3)}, torch.zeros(3), [1, 2]])
+def test_foreign_torch_file(tmp_path: Path, payload) -> None:
+    path = tmp_path / "foreign.pt"
+    torch.save(payload, path)
+    _assert_error(path, "not a task_outcome_ros checkpoint")
+
+
+def test_pickled_code_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "evil.pt"
+    torch.save({"format": checkpoint.FORMAT, "obj": _TrainConfig()}, path)
+    _assert_error(path, "cannot be read")
+
+
+def test_label_table_mismatch(tmp_path: Path) -> None:
+    path = tmp_path / "m.pt"
+    _save(path)
+    table = label_table()
+    table["success"], table["fell_outside"] = table["fell_outside"], table["success"]
+    _rewrite(path, label_table=table)
+    _assert_error(path, "label table")
+
+
+@pytest.mark.parametrize("version", [2, 0, "1", None])
+def test_unsupported_format_version(tmp_path: Path, version) -> None:
+    path = tmp_path / "m.pt"
+    _save(path)
+    _rewrite(path, format_version=version)
+    _assert_error(path, "format_version")
+
+
+def test_weights_that_do_not_fit(tmp_path: Path) -> None:
+    path = tmp_path / "m.pt"
+    _save(path)
+    _rewrite(path, model_args={**ARGS, "base_width": 6})
+    _assert_error(path, "weights do not fit")
+
+
+def test_bad_model_args_and_fields(tmp_path: Path) -> None:
+    path = tmp_path / "m.pt"
+    _save(path)
+    _rewrite(path, model_args={**ARGS, "colour": "red"})
+    _assert_error(path, "model_args")
+    _save(path)
+    _rewrite(path, input_size=[0, 10])
+    _assert_error(path, "input_size")
+    payload = torch.load(path, weights_only=True)
+    del payload["normalisation"]
+    payload["input_size"] = [32, 24]
+    torch.save(payload, path)
+    _assert_error(path, "'normalisation' is missing")
+
+
+def test_cuda_device_without_cuda(tmp_path: Path) -> None:
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is available here; the refusal path cannot be exercised")
+    path = tmp_path / "m.pt"
+    _save(path)
+    with pytest.raises(ValueError, match="CUDA is not available"):
+        checkpoint.load(path, device="cuda")
+    assert checkpoint.load(path, device="auto").model is not None

@@ -1,0 +1,215 @@
+"""The one inference path: OutcomeSegmenter, presence, objects, and the ONNX backend."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from task_outcome_ros import checkpoint, inference
+from task_outcome_ros.checkpoint import CheckpointError
+from task_outcome_ros.inference import (
+    OutcomeSegmenter,
+    count_objects,
+    default_model_path,
+    predict_labels,
+)
+from task_outcome_ros.labels import (
+    BACKGROUND,
+    FELL_OUTSIDE,
+    OUTCOME_NAMES,
+    STUCK_ON_RIM,
+    SUCCESS,
+    outcomes_present,
+)
+from task_outcome_ros.model import DEFAULT_NORMALISATION, OutcomeFCN, preprocess
+
+ARGS = {"in_channels": 2, "num_classes": 5, "base_width": 4, "levels": 3, "decoder_convs": 1}
+INPUT_SIZE = (160, 120)
+
+
+def _make_checkpoint(path: Path, seed: int = 0) -> Path:
+    torch.manual_seed(seed)
+    model = OutcomeFCN(**ARGS)
+    # BN statistics from real inputs, so random-init labels vary over the image (a
+    # backend comparison on a constant label image would prove nothing).
+    batch = torch.from_numpy(np.stack([preprocess(_scene(120, 160, s), INPUT_SIZE)
+                                       for s in range(4)]))
+    model.train()
+    with torch.no_grad():
+        model.head.bias.zero_()
+        for _ in range(20):
+            model(batch)
+    return checkpoint.save(path, model, model_args=ARGS, input_size=INPUT_SIZE,
+                           normalisation=DEFAULT_NORMALISATION, train_config={}, metrics={})
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory) -> Path:
+    return _make_checkpoint(tmp_path_factory.mktemp("ckpt") / "outcome_fcn.pt")
+
+
+@pytest.fixture(scope="module")
+def segmenter(ckpt: Path) -> OutcomeSegmenter:
+    return OutcomeSegmenter(ckpt, backend="torch")
+
+
+def _scene(h: int, w: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    depth = (2.0 + 0.05 * rng.standard_normal((h, w))).astype(np.float32)
+    depth[h // 3: h // 2, w // 3: w // 2] = 1.7
+    depth[rng.random((h, w)) < 0.05] = np.nan
+    return depth
+
+
+@pytest.mark.parametrize("h,w", [(480, 640), (479, 641), (33, 97), (1, 1), (120, 160)])
+def test_output_keeps_input_size(segmenter: OutcomeSegmenter, h: int, w: int) -> None:
+    result = segmenter.segment(_scene(h, w))
+    assert result.labels.shape == (h, w) and result.labels.dtype == np.uint8
+    assert result.labels.max() < 5
+    assert set(result.present) == set(OUTCOME_NAMES) == set(result.objects)
+    assert result.present == outcomes_present(result.labels, segmenter.presence_min_pixels)
+    assert result.inference_ms > 0
+
+
+@pytest.mark.parametrize("fill", [np.nan, 0.0, np.inf, -1.0])
+def test_all_invalid_depth_means_nothing_present(segmenter: OutcomeSegmenter, fill) -> None:
+    result = segmenter.segment(np.full((480, 640), fill, np.float32))
+    assert not result.labels.any()
+    assert not any(result.present.values())
+    assert all(n == 0 for n in result.pixel_counts.values())
+    assert all(objs == [] for objs in result.objects.values())
+
+
+@pytest.mark.parametrize("bad", [np.zeros((4, 4, 1), np.float32), np.zeros(16, np.float32),
+                                 np.zeros((4, 4), bool), np.array([["a", "b"]]),
+                                 np.zeros((0, 5), np.float32), np.float32(2.0)])
+def test_bad_input_raises_value_error(segmenter: OutcomeSegmenter, bad) -> None:
+    with pytest.raises(ValueError):
+        segmenter.segment(bad)
+
+
+def test_integer_millimetre_like_input_is_accepted(segmenter: OutcomeSegmenter) -> None:
+    result = segmenter.segment(np.full((48, 64), 2, np.uint16))
+    assert result.labels.shape == (48, 64)
+
+
+def test_presence_threshold_is_on_full_size_labels(segmenter: OutcomeSegmenter,
+                                                   monkeypatch) -> None:
+    """2x2 working pixels -> 64 full-size px (present); 1x3 -> 48 px (absent, < 50)."""
+    small = np.zeros((120, 160), np.uint8)
+    small[10:12, 10:12] = SUCCESS
+    small[50, 50:53] = FELL_OUTSIDE
+    small[80:90, 100:110] = STUCK_ON_RIM
+    monkeypatch.setattr(segmenter, "_predict_small", lambda x: small)
+    depth = np.full((480, 640), 2.0, np.float32)
+    depth[320:360, 400:440] = 1.5
+    result = segmenter.segment(depth)
+    assert result.pixel_counts == {"success": 64, "fell_outside": 48, "stuck_on_rim": 1600}
+    assert result.present == {"success": True, "fell_outside": False, "stuck_on_rim": True}
+    assert result.objects["fell_outside"] == []
+    [stuck] = result.objects["stuck_on_rim"]
+    assert stuck.pixel_count == 1600 and stuck.outcome == "stuck_on_rim"
+    assert stuck.centroid_px == pytest.approx((419.5, 339.5))
+    assert stuck.median_depth_m == pytest.approx(1.5)
+    # Half the size: the threshold scales with the area (50 / 4 -> 12 px).
+    half = segmenter.segment(np.full((240, 320), 2.0, np.float32))
+    assert half.pixel_counts["fell_outside"] == 12 and half.present["fell_outside"]
+
+
+def test_count_objects_on_hand_made_labels() -> None:
+    labels = np.zeros((100, 120), np.uint8)
+    labels[10:20, 10:20] = SUCCESS          # 100 px
+    labels[50:55, 50:55] = SUCCESS          # 25 px, below 50
+    labels[60:80, 90:100] = SUCCESS         # 200 px
+    labels[80:81, 100:101] = SUCCESS        # diagonal neighbour: joins the 200 px object
+    labels[0:30, 60:70] = FELL_OUTSIDE
+    depth = np.full((100, 120), 2.0, np.float32)
+    depth[10:20, 10:20] = 1.25
+    depth[60:81, 90:101] = np.nan
+    objs = count_objects(labels, SUCCESS, 50, depth)
+    assert [o.pixel_count for o in objs] == [201, 100]
+    assert all(o.outcome == "success" for o in objs)
+    assert objs[0].median_depth_m is None  # no valid depth under it
+    assert objs[1].median_depth_m == pytest.approx(1.25)
+    assert objs[1].centroid_px == pytest.approx((14.5, 14.5))
+    assert len(count_objects(labels, SUCCESS, 1)) == 3
+    assert count_objects(labels, STUCK_ON_RIM, 1) == []
+    assert count_objects(labels, FELL_OUTSIDE, 50)[0].median_depth_m is None  # no depth given
+    with pytest.raises(ValueError):
+        count_objects(labels, 9, 1)
+
+
+def test_predict_labels_shape_and_dtype(segmenter: OutcomeSegmenter) -> None:
+    batch = torch.from_numpy(np.stack([preprocess(_scene(120, 160, s), INPUT_SIZE)
+                                       for s in range(2)]))
+    labels = predict_labels(segmenter.model, batch)
+    assert labels.shape == (2, 120, 160) and labels.dtype == torch.uint8
+    with pytest.raises(ValueError):
+        predict_labels(segmenter.model, batch[0])
+
+
+def test_warmup_and_constructor_checks(ckpt: Path) -> None:
+    seg = OutcomeSegmenter(ckpt, backend="torch", presence_min_pixels=10)
+    seg.warmup()
+    for kwargs in ({"backend": "tensorrt"}, {"presence_min_pixels": 0},
+                   {"device": "tpu"}):
+        with pytest.raises(ValueError):
+            OutcomeSegmenter(ckpt, **kwargs)
+    with pytest.raises(CheckpointError, match="not found"):
+        OutcomeSegmenter(ckpt.parent / "missing.pt")
+
+
+def test_missing_default_model_names_path_and_command(tmp_path: Path, monkeypatch) -> None:
+    assert default_model_path().parts[-3:] == ("task_outcome_ros", "models", "outcome_fcn.pt")
+    missing = tmp_path / "models" / "outcome_fcn.pt"
+    monkeypatch.setattr(inference, "default_model_path", lambda: missing)
+    with pytest.raises(CheckpointError) as info:
+        OutcomeSegmenter()
+    assert str(missing) in str(info.value) and "python -m training train" in str(info.value)
+
+
+@pytest.fixture(scope="module")
+def onnx_ckpt(tmp_path_factory) -> Path:
+    pytest.importorskip("onnx")
+    pytest.importorskip("onnxruntime")
+    from task_outcome_ros.onnx_export import export_onnx
+
+    path = _make_checkpoint(tmp_path_factory.mktemp("onnx") / "outcome_fcn.pt", seed=1)
+    assert export_onnx(path) == path.with_suffix(".onnx")
+    return path
+
+
+def test_onnx_and_torch_backends_agree(onnx_ckpt: Path) -> None:
+    seg_onnx = OutcomeSegmenter(onnx_ckpt, backend="auto")
+    seg_torch = OutcomeSegmenter(onnx_ckpt, backend="torch")
+    assert seg_onnx.backend == "onnx" and seg_torch.backend == "torch"
+    agree, total = 0, 0
+    for seed, (h, w) in enumerate([(480, 640), (479, 641), (120, 160)]):
+        depth = _scene(h, w, seed)
+        a, b = seg_onnx.segment(depth), seg_torch.segment(depth)
+        agree += int((a.labels == b.labels).sum())
+        total += a.labels.size
+        assert len(np.unique(b.labels)) > 1  # a meaningful comparison, not all background
+    assert agree / total >= 0.999
+
+
+def test_auto_backend_falls_back_when_onnx_is_stale(onnx_ckpt: Path, tmp_path: Path) -> None:
+    stale = tmp_path / "outcome_fcn.pt"
+    _make_checkpoint(stale, seed=2)
+    (tmp_path / "outcome_fcn.onnx").write_bytes(onnx_ckpt.with_suffix(".onnx").read_bytes())
+    seg = OutcomeSegmenter(stale, backend="auto")
+    assert seg.backend == "torch" and "hash differs" in seg.backend_reason
+    with pytest.raises(CheckpointError, match="hash differs"):
+        OutcomeSegmenter(stale, backend="onnx")
+    (tmp_path / "outcome_fcn.onnx").unlink()
+    assert OutcomeSegmenter(stale, backend="auto").backend == "torch"
+    with pytest.raises(CheckpointError, match="no ONNX file"):
+        OutcomeSegmenter(stale, backend="onnx")
+
+
+def test_background_only_labels_are_not_present() -> None:
+    labels = np.full((480, 640), BACKGROUND, np.uint8)
+    assert not any(outcomes_present(labels).values())

@@ -1,0 +1,116 @@
+"""The FCN and the one preprocessing path (model.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from task_outcome_ros.labels import NUM_CLASSES, SUCCESS
+from task_outcome_ros.model import (
+    DEFAULT_MODEL_ARGS,
+    DEFAULT_NORMALISATION,
+    OutcomeFCN,
+    build_model,
+    preprocess,
+    preprocess_batch,
+    resize_depth,
+)
+
+
+@pytest.mark.parametrize("h,w", [(48, 64), (33, 97), (37, 53), (16, 16)])
+def test_any_input_size_keeps_size(h: int, w: int) -> None:
+    model = OutcomeFCN(base_width=4, levels=3).eval()
+    with torch.inference_mode():
+        out = model(torch.randn(2, 2, h, w))
+    assert out.shape == (2, NUM_CLASSES, h, w)
+
+
+def test_build_model_from_default_args() -> None:
+    model = build_model(DEFAULT_MODEL_ARGS)
+    assert model.stride == 2 ** DEFAULT_MODEL_ARGS["levels"]
+
+
+@pytest.mark.parametrize("kwargs", [{"levels": 0}, {"base_width": 1}, {"decoder_convs": 3}])
+def test_bad_constructor_args(kwargs: dict) -> None:
+    with pytest.raises(ValueError):
+        OutcomeFCN(**kwargs)
+
+
+def test_preprocess_normalisation_and_validity() -> None:
+    depth = np.full((8, 8), 3.0, np.float32)
+    depth[:4, :4] = np.nan          # top-left output pixel entirely invalid
+    depth[4:, 4:6] = 0.0            # bottom-right output pixel half valid (0 = no return)
+    x = preprocess(depth, (2, 2))
+    assert x.shape == (2, 2, 2) and x.dtype == np.float32
+    norm = DEFAULT_NORMALISATION
+    expected = (3.0 - norm["offset_m"]) / norm["scale_m"]
+    np.testing.assert_allclose(x[1], [[0.0, 1.0], [1.0, 0.5]])
+    np.testing.assert_allclose(x[0], [[norm["invalid_value"], expected], [expected, expected]],
+                               rtol=1e-6)
+
+
+def test_preprocess_clips_and_handles_all_invalid() -> None:
+    far = preprocess(np.full((10, 10), 500.0, np.float32), (5, 5))
+    assert np.all(far[0] == DEFAULT_NORMALISATION["clip"])
+    empty = preprocess(np.full((10, 12), np.nan, np.float32), (6, 5))
+    assert empty.shape == (2, 5, 6) and not np.any(empty) and np.isfinite(empty).all()
+    inf = preprocess(np.full((4, 4), np.inf, np.float32), (4, 4))
+    assert not np.any(inf)
+
+
+def test_resize_depth_is_nan_aware() -> None:
+    depth = np.array([[1.0, np.nan], [3.0, np.nan]], np.float32)
+    d, frac = resize_depth(depth, (1, 1))
+    assert d[0, 0] == pytest.approx(2.0) and frac[0, 0] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("size_in,size_out", [((640, 480), (160, 120)), ((64, 48), (64, 48)),
+                                              ((320, 240), (160, 120))])
+def test_numpy_and_torch_preprocess_agree(size_in, size_out) -> None:
+    rng = np.random.default_rng(1)
+    w, h = size_in
+    depths = (1.0 + 2.0 * rng.random((3, h, w))).astype(np.float32)
+    depths[rng.random(depths.shape) < 0.2] = np.nan
+    depths[:, :10, :10] = 0.0
+    ref = np.stack([preprocess(d, size_out) for d in depths])
+    got = preprocess_batch(torch.from_numpy(depths), size_out).numpy()
+    assert got.shape == ref.shape
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+
+
+def _box_scenes(n: int, h: int, w: int, rng: np.random.Generator):
+    """Floor at 2 m, container-ish ring, one box of a random outcome class; labels to match."""
+    depths = np.full((n, h, w), 2.0, np.float32)
+    labels = np.zeros((n, h, w), np.int64)
+    for i in range(n):
+        y, x = rng.integers(4, h - 14), rng.integers(4, w - 14)
+        cls = int(rng.integers(1, NUM_CLASSES))
+        depths[i, y:y + 10, x:x + 10] = 2.0 - 0.1 * cls
+        labels[i, y:y + 10, x:x + 10] = cls
+    return depths, labels
+
+
+def test_model_overfits_tiny_batch() -> None:
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    depths, labels = _box_scenes(4, 48, 64, rng)
+    x = preprocess_batch(torch.from_numpy(depths), (64, 48))
+    y = torch.from_numpy(labels)
+    model = OutcomeFCN(base_width=8, levels=3)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    losses = []
+    for _ in range(100):
+        opt.zero_grad()
+        loss = F.cross_entropy(model(x), y)
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.1 * losses[0], (losses[0], losses[-1])
+    model.eval()
+    with torch.inference_mode():
+        pred = model(x).argmax(1)
+    objects = y > 0
+    assert (pred[objects] == y[objects]).float().mean() > 0.9
+    assert (pred == SUCCESS).any() or not (y == SUCCESS).any()

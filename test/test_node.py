@@ -1,0 +1,425 @@
+"""The real outcome_node (subprocess, console script) exchanging real messages over DDS.
+
+One node process serves the whole module (module-scoped fixture). Its checkpoint is a
+random-init network whose head bias makes ``fell_outside`` win on every pixel, so the
+model's answer is known by construction (one object covering the image) and the 3-D and
+marker outputs can be checked exactly; everything else asserts structure and consistency
+(sizes, headers, status fields agreeing with the labels received), which must hold for any
+model. Tests with the shipped checkpoint and known-truth images live elsewhere.
+"""
+
+from __future__ import annotations
+
+import random
+import subprocess
+import sys
+import time
+from xml.etree import ElementTree
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy", reason="ROS 2 rclpy is not installed")
+pytest.importorskip("torch", reason="torch is not installed")
+
+import node_helpers as nh  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+from rcl_interfaces.srv import DescribeParameters, GetParameters  # noqa: E402
+from visualization_msgs.msg import Marker  # noqa: E402
+
+from task_outcome_ros import labels as L  # noqa: E402
+
+DOMAIN_ID = random.randint(1, 200)
+CONFIG = nh.REPO / "config" / "outcome_node.yaml"
+ALL_OUTPUTS = ("status", "labels", "overlay", "markers")
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("outcome_node")
+    ckpt = nh.make_checkpoint(tmp / "fell_everywhere.pt", favour=L.FELL_OUTSIDE)
+    # The shipped YAML (so rcl must parse it) with the test checkpoint on top.
+    proc = nh.NodeProcess(["--params-file", str(CONFIG), "-p", f"model_path:={ckpt}"],
+                          DOMAIN_ID, tmp / "node.log")
+    client = nh.OutcomeClient(DOMAIN_ID)
+    try:
+        client.wait_for_node(proc)
+        # First exchange: the node's reader may match our writer a moment after we see it.
+        client.request(nh.depth_msg(np.full((8, 8), 2.0, np.float32), stamp=client.next_stamp()),
+                       timeout=30.0, resend_every=0.5)
+        yield client, proc
+    finally:
+        client.close()
+        proc.stop()
+
+
+def scene(h: int = 480, w: int = 640) -> np.ndarray:
+    """Floor plane, a box, invalid rows and columns (NaN)."""
+    d = np.full((h, w), 2.2, np.float32)
+    d[h // 4: h // 2, w // 4: w // 2] = 1.9
+    if h >= 20 and w >= 30:
+        d[: h // 20] = np.nan
+        d[:, -(w // 30):] = np.nan
+    return d
+
+
+def labels_array(msg) -> np.ndarray:
+    return np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.step)[:, :msg.width]
+
+
+def check_reply(request, reply) -> np.ndarray:
+    """Sizes, encodings and headers of labels/status/overlay; status consistent with labels."""
+    key = nh.header_key(request.header)
+    h, w = request.height, request.width
+    lab = reply.labels
+    assert (lab.encoding, lab.height, lab.width, lab.step) == ("mono8", h, w, w)
+    assert nh.header_key(lab.header) == key and len(lab.data) == h * w
+    labels = labels_array(lab)
+    assert set(np.unique(labels)) <= set(range(L.NUM_CLASSES))
+    if reply.overlay is not None:
+        ov = reply.overlay
+        assert (ov.encoding, ov.height, ov.width, ov.step) == ("rgb8", h, w, 3 * w)
+        assert nh.header_key(ov.header) == key and len(ov.data) == 3 * h * w
+
+    assert nh.header_key(reply.status.header) == key
+    (status,) = reply.status.status
+    assert status.name == "task_outcome" and status.hardware_id == request.header.frame_id
+    values = nh.status_values(reply.status)
+    threshold = L.presence_threshold(h, w)
+    present = {}
+    for name in L.OUTCOME_NAMES:
+        pixels = int(values[f"{name}.pixels"])
+        assert pixels == int(np.count_nonzero(labels == L.OUTCOME_IDS[name]))
+        assert values[f"{name}.present"] in ("true", "false")
+        present[name] = values[f"{name}.present"] == "true"
+        assert present[name] == (pixels >= threshold)
+        n_objects = int(values[f"{name}.objects"])
+        assert 0 <= n_objects <= (pixels // threshold if present[name] else 0)
+        if name in L.FAILURE_OUTCOMES:
+            for k in range(n_objects):
+                u, v = (float(c) for c in values[f"{name}.{k}.centroid_px"].split(","))
+                assert 0 <= u <= w - 1 and 0 <= v <= h - 1
+            assert f"{name}.{n_objects}.centroid_px" not in values
+    expected = sorted(n for n, p in present.items() if p)
+    assert status.message == (",".join(expected) if expected else "none")
+    failure = any(present[n] for n in L.FAILURE_OUTCOMES)
+    assert status.level == (DiagnosticStatus.WARN if failure else DiagnosticStatus.OK)
+    assert float(values["inference_ms"]) >= 0 and float(values["latency_ms"]) >= 0
+    assert int(values["dropped_frames"]) >= 0
+    return labels
+
+
+def test_parameters_declared_with_descriptions_and_defaults(session):
+    client, _ = session
+    names = ["model_path", "device", "backend", "presence_min_pixels", "publish_overlay",
+             "overlay_alpha", "publish_markers", "qos"]
+    describe = client.node.create_client(DescribeParameters, "/outcome_node/describe_parameters")
+    get = client.node.create_client(GetParameters, "/outcome_node/get_parameters")
+    try:
+        assert client.spin_until(lambda: describe.service_is_ready() and get.service_is_ready(),
+                                 20.0)
+        fut_d = describe.call_async(DescribeParameters.Request(names=names))
+        fut_g = get.call_async(GetParameters.Request(names=names))
+        assert client.spin_until(lambda: fut_d.done() and fut_g.done(), 20.0)
+    finally:
+        client.node.destroy_client(describe)
+        client.node.destroy_client(get)
+    descriptors = fut_d.result().descriptors
+    assert [d.name for d in descriptors] == names
+    assert all(len(d.description) > 20 for d in descriptors)
+    values = dict(zip(names, fut_g.result().values))
+    assert values["device"].string_value == "cpu"
+    assert values["backend"].string_value == "auto"
+    assert values["qos"].string_value == "sensor_data"
+    assert values["presence_min_pixels"].integer_value == L.PRESENCE_MIN_PIXELS
+    assert values["publish_overlay"].bool_value is True
+    assert 0.0 <= values["overlay_alpha"].double_value <= 1.0
+    assert values["model_path"].string_value.endswith("fell_everywhere.pt")
+    assert values["publish_markers"].bool_value is True
+
+
+def test_float_depth_640x480(session):
+    client, _ = session
+    msg = nh.depth_msg(scene(), "32FC1", stamp=client.next_stamp(), frame_id="cam_a_optical")
+    reply = client.request(msg, ALL_OUTPUTS)
+    check_reply(msg, reply)
+    # Known by construction of the test checkpoint: fell_outside everywhere -> WARN.
+    (status,) = reply.status.status
+    assert status.level == DiagnosticStatus.WARN and status.message == "fell_outside"
+    assert nh.status_values(reply.status)["fell_outside.objects"] == "1"
+
+
+def test_inf_and_negative_depth_are_invalid(session):
+    client, _ = session
+    base = scene(96, 128)
+    weird = base.copy()
+    weird[40:50, 10:40] = np.inf
+    weird[60:70, 10:40] = -1.5
+    weird[80:90, 10:40] = 0.0
+    nan = base.copy()
+    nan[40:50, 10:40] = nan[60:70, 10:40] = nan[80:90, 10:40] = np.nan
+    got = []
+    for depth in (weird, nan):
+        msg = nh.depth_msg(depth, stamp=client.next_stamp())
+        got.append(check_reply(msg, client.request(msg, ("status", "labels"))))
+    np.testing.assert_array_equal(got[0], got[1])
+
+
+# (encoding, big-endian, row padding in bytes, (height, width))
+VARIANTS = [
+    ("16UC1", False, 0, (480, 640)),
+    ("32FC1", True, 0, (480, 640)),
+    ("16UC1", True, 0, (480, 640)),
+    ("32FC1", False, 12, (480, 640)),
+    ("16UC1", True, 6, (480, 640)),
+    ("32FC1", False, 0, (77, 101)),
+    ("16UC1", False, 2, (3, 500)),
+    ("32FC1", True, 0, (1, 1)),
+]
+
+
+@pytest.mark.parametrize("encoding,bigendian,pad,size", VARIANTS,
+                         ids=[f"{e}-{'be' if b else 'le'}-pad{p}-{s[1]}x{s[0]}"
+                              for e, b, p, s in VARIANTS])
+def test_encodings_endianness_padding_sizes(session, encoding, bigendian, pad, size):
+    """Every variant keeps size and header and gives the same labels as its plain LE twin."""
+    client, _ = session
+    depth = scene(*size)
+    plain = nh.depth_msg(depth, encoding, stamp=client.next_stamp(), frame_id="plain")
+    msg = nh.depth_msg(depth, encoding, stamp=client.next_stamp(), frame_id="variant_frame",
+                    bigendian=bigendian, pad=pad)
+    assert msg.step == size[1] * (4 if encoding == "32FC1" else 2) + pad
+    ref = check_reply(plain, client.request(plain, ("status", "labels")))
+    got = check_reply(msg, client.request(msg, ("status", "labels", "overlay")))
+    np.testing.assert_array_equal(got, ref)
+
+
+@pytest.mark.parametrize("encoding,fill", [("32FC1", np.nan), ("16UC1", 0.0),
+                                           ("32FC1", -np.inf)])
+def test_no_valid_depth_is_a_valid_frame(session, encoding, fill):
+    client, _ = session
+    msg = nh.depth_msg(np.full((48, 64), fill, np.float32), encoding, stamp=client.next_stamp())
+    reply = client.request(msg, ("status", "labels", "overlay"))
+    labels = check_reply(msg, reply)
+    (status,) = reply.status.status
+    assert status.level == DiagnosticStatus.OK and status.message == "none"
+    assert not labels.any()
+
+
+BAD_FRAMES = {
+    # name: (encoding, height, width, step, n_bytes, big-endian, words the status must contain)
+    "rgb8": ("rgb8", 24, 32, 96, 96 * 24, False, "encoding"),
+    "8UC1": ("8UC1", 24, 32, 32, 32 * 24, False, "encoding"),
+    "64FC1": ("64FC1", 24, 32, 256, 256 * 24, False, "encoding"),
+    "empty-encoding": ("", 24, 32, 128, 128 * 24, False, "encoding"),
+    "data-too-short": ("32FC1", 24, 32, 128, 128 * 24 - 1, False, "bytes"),
+    "data-too-long": ("32FC1", 24, 32, 128, 128 * 24 + 4, True, "bytes"),
+    "step-smaller-than-row": ("16UC1", 24, 32, 60, 60 * 24, False, "step"),
+    "zero-width": ("32FC1", 24, 0, 0, 0, False, "size"),
+    "zero-height": ("16UC1", 0, 32, 64, 0, False, "size"),
+    "huge": ("32FC1", 1, 100_000, 400_000, 64, False, "limit"),
+}
+
+
+@pytest.mark.parametrize("name", list(BAD_FRAMES))
+def test_bad_frame_gives_error_status_and_node_goes_on(session, name):
+    client, proc = session
+    encoding, h, w, step, n_bytes, big, words = BAD_FRAMES[name]
+    bad = nh.raw_image(encoding, h, w, step, bytes(n_bytes), stamp=client.next_stamp(),
+                    frame_id=f"bad_{name}", bigendian=big)
+    reply = client.request(bad)
+    assert nh.header_key(reply.status.header) == nh.header_key(bad.header)
+    (status,) = reply.status.status
+    assert status.level == DiagnosticStatus.ERROR and status.name == "task_outcome"
+    assert status.hardware_id == f"bad_{name}"
+    assert words in status.message, status.message
+    assert "dropped_frames" in nh.status_values(reply.status)
+
+    good = nh.depth_msg(scene(24, 32), stamp=client.next_stamp())
+    check_reply(good, client.request(good, ("status", "labels")))
+    # Outputs are in order per topic: had the bad frame produced labels, they came first.
+    assert client.replies[nh.header_key(bad.header)].labels is None
+    assert proc.alive()
+    assert "skipping depth frame" in proc.log()
+
+
+def _request_until(client, make_msg, predicate, timeout: float = 15.0):
+    """Send fresh frames until a reply satisfies ``predicate`` (camera_info is best effort)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        msg = make_msg()
+        reply = client.request(msg, ALL_OUTPUTS)
+        if predicate(nh.status_values(reply.status)):
+            return msg, reply
+    raise TimeoutError("the node never reflected the camera_info that was sent")
+
+
+def test_camera_info_gives_3d_centroids_and_markers(session):
+    client, _ = session
+    h, w, z = 48, 64, 2.0
+    fx, cx, cy = 60.0, 30.0, 26.0
+
+    def make_msg():
+        client.info_pub.publish(nh.camera_info(w, h, fx, cx, cy))
+        return nh.depth_msg(np.full((h, w), z, np.float32), stamp=client.next_stamp())
+
+    msg, reply = _request_until(client, make_msg, lambda v: "fell_outside.0.centroid_m" in v)
+    check_reply(msg, reply)
+    values = nh.status_values(reply.status)
+    u, v = (float(c) for c in values["fell_outside.0.centroid_px"].split(","))
+    assert (u, v) == pytest.approx(((w - 1) / 2, (h - 1) / 2), abs=0.05)
+    xyz = [float(c) for c in values["fell_outside.0.centroid_m"].split(",")]
+    assert xyz == pytest.approx([(u - cx) * z / fx, (v - cy) * z / fx, z], abs=2e-3)
+    assert "camera_info" not in values
+
+    markers = reply.markers.markers
+    assert markers[0].action == Marker.DELETEALL
+    (sphere,) = markers[1:]
+    assert (sphere.type, sphere.ns, sphere.id) == (Marker.SPHERE, "fell_outside", 0)
+    assert nh.header_key(sphere.header) == nh.header_key(msg.header)
+    p = sphere.pose.position
+    assert [p.x, p.y, p.z] == pytest.approx(xyz, abs=2e-3)
+
+
+def test_camera_info_of_another_size_is_ignored_and_reported(session):
+    client, _ = session
+
+    def make_msg():
+        client.info_pub.publish(nh.camera_info(640, 480, 570.0, 320.0, 240.0))
+        return nh.depth_msg(np.full((48, 64), 2.0, np.float32), stamp=client.next_stamp())
+
+    msg, reply = _request_until(client, make_msg, lambda v: "camera_info" in v)
+    values = nh.status_values(reply.status)
+    assert "does not match" in values["camera_info"] and "640 x 480" in values["camera_info"]
+    assert not any(k.endswith("centroid_m") for k in values)
+    assert "fell_outside.0.centroid_px" in values
+    assert reply.markers.markers[0].action == Marker.DELETEALL
+    assert len(reply.markers.markers) == 1
+
+
+def test_burst_keeps_only_the_newest_and_counts_drops(session):
+    client, proc = session
+    before = client.request(nh.depth_msg(scene(24, 32), stamp=client.next_stamp()))
+    dropped_before = int(nh.status_values(before.status)["dropped_frames"])
+    burst = [nh.depth_msg(scene(), stamp=client.next_stamp(), frame_id="burst") for _ in range(12)]
+    for msg in burst[:-1]:
+        client.image_pub.publish(msg)
+    last = client.request(burst[-1], ("status", "labels"), resend_every=30.0)
+    check_reply(burst[-1], last)
+    processed = sum(nh.header_key(m.header) in client.replies for m in burst)
+    dropped = int(nh.status_values(last.status)["dropped_frames"]) - dropped_before
+    assert dropped >= 0 and processed >= 1
+    # Each frame is processed, overwritten (dropped) or lost in transport; never queued.
+    assert processed + dropped <= len(burst)
+    assert proc.alive()
+
+
+def test_namespace_reliable_qos_and_no_overlay(tmp_path):
+    """Relative topic names follow the namespace; qos:=reliable and publish_overlay:=false."""
+    domain = (DOMAIN_ID % 200) + 1
+    ckpt = nh.make_checkpoint(tmp_path / "random.pt", seed=1)
+    proc = nh.NodeProcess(["-r", "__ns:=/cam1", "-p", f"model_path:={ckpt}", "-p",
+                           "qos:=reliable", "-p", "publish_overlay:=false"],
+                          domain, tmp_path / "node.log")
+    client = nh.OutcomeClient(domain, namespace="/cam1")
+    try:
+        client.wait_for_node(proc)
+        assert client.image_pub.topic_name == "/cam1/depth/image_raw"
+        msgs = [nh.depth_msg(scene(60, 80), "16UC1", stamp=client.next_stamp()) for _ in range(2)]
+        for msg in msgs:  # reliable input: no resend needed even for the first frame
+            check_reply(msg, client.request(msg, ("status", "labels"), resend_every=20.0))
+        assert all(client.replies[nh.header_key(m.header)].overlay is None for m in msgs)
+        assert "qos reliable" in proc.log()
+    finally:
+        client.close()
+        assert proc.stop() == 0
+
+
+@pytest.mark.parametrize("case", ["qos", "presence_min_pixels", "overlay_alpha", "missing_model",
+                                  "corrupt_model", "not_a_checkpoint"])
+def test_bad_parameter_or_model_stops_node_with_clear_message(tmp_path, case):
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(bytes(random.Random(0).randrange(256) for _ in range(4096)))
+    foreign = tmp_path / "foreign.pt"
+    import torch
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    args, needle = {
+        "qos": (["-p", "qos:=bogus"], "'qos'"),
+        "presence_min_pixels": (["-p", "presence_min_pixels:=0"], "presence_min_pixels"),
+        "overlay_alpha": (["-p", "overlay_alpha:=1.5"], "overlay_alpha"),
+        "missing_model": (["-p", "model_path:=/nonexistent/outcome.pt"],
+                          "/nonexistent/outcome.pt"),
+        "corrupt_model": (["-p", f"model_path:={corrupt}"], str(corrupt)),
+        "not_a_checkpoint": (["-p", f"model_path:={foreign}"], str(foreign)),
+    }[case]
+    result = nh.run_node_expect_exit(args, timeout=45.0)
+    assert result.returncode != 0
+    err = result.stderr + result.stdout
+    assert "FATAL" in err and needle in err, err
+    assert "Traceback" not in err, err
+
+
+def test_config_yaml_lists_every_declared_parameter():
+    yaml = pytest.importorskip("yaml")
+    from task_outcome_ros.node import PARAMS
+
+    params = yaml.safe_load(CONFIG.read_text())["outcome_node"]["ros__parameters"]
+    assert params == {name: spec.default for name, spec in PARAMS.items()}
+
+
+def test_launch_file_compiles():
+    source = (nh.REPO / "launch" / "outcome.launch.py").read_text()
+    compile(source, "outcome.launch.py", "exec")
+    assert "outcome_node.yaml" in source and "def generate_launch_description" in source
+
+
+def test_fastdds_profile_is_valid_and_loads_without_errors():
+    root = ElementTree.parse(nh.SHM_PROFILE).getroot()
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    shm = [t for t in root.iterfind(".//f:transport_descriptor", ns)
+           if t.findtext("f:type", namespaces=ns) == "SHM"]
+    assert len(shm) == 1
+    assert int(shm[0].findtext("f:segment_size", namespaces=ns)) >= 8 * 640 * 480 * 4
+    participant = root.find(".//f:participant[@is_default_profile='true']", ns)
+    assert participant.findtext("f:rtps/f:useBuiltinTransports", namespaces=ns) == "false"
+    # Fast DDS reports a bad profile on stderr ("XMLPARSER Error") and silently falls back.
+    code = ("import rclpy; from rclpy.node import Node; rclpy.init(); n = Node('xml_probe'); "
+            "n.destroy_node(); rclpy.shutdown(); print('ok')")
+    result = subprocess.run([sys.executable, "-c", code], env=nh.ros_env(),
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stdout.strip() == "ok", result.stderr
+    assert "Error" not in result.stdout + result.stderr
+
+
+def test_package_imports_without_rclpy():
+    code = (
+        "import sys, importlib, pkgutil\n"
+        "sys.modules['rclpy'] = None\n"  # any `import rclpy` now raises ImportError
+        "import task_outcome_ros, training\n"
+        "mods = ['task_outcome_ros.inference', 'task_outcome_ros.labels',\n"
+        "        'task_outcome_ros.depth', 'task_outcome_ros.model',\n"
+        "        'task_outcome_ros.checkpoint', 'training.config']\n"
+        "mods += ['task_outcome_ros.' + m.name for m in\n"
+        "         pkgutil.iter_modules(task_outcome_ros.__path__)\n"
+        "         if m.name not in ('node', 'bag_tools') and not m.name.startswith('_')]\n"
+        "for name in dict.fromkeys(mods):\n"
+        "    importlib.import_module(name)\n"
+        "try:\n"
+        "    importlib.import_module('task_outcome_ros.node')\n"
+        "except ImportError:\n"
+        "    pass\n"
+        "else:\n"
+        "    raise SystemExit('task_outcome_ros.node imported although rclpy is blocked')\n"
+        "print('ok', len(mods))\n")
+    result = subprocess.run([sys.executable, "-c", code], cwd=nh.REPO, env=nh.ros_env(),
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("ok")
+
+
+def test_shutdown_is_clean(session):
+    """Last: SIGINT ends the node with exit code 0 and no traceback."""
+    _, proc = session
+    assert proc.alive()
+    assert proc.stop() == 0
+    assert "Traceback" not in proc.log(), proc.log()

@@ -1,0 +1,155 @@
+"""``python -m training <stage>``: the offline pipeline, one sub-command per stage.
+
+simulate -> discover -> render (+ manifest, previews) -> train -> evaluate; ``dataset`` runs
+the first three, ``run`` runs everything. Each stage reads the previous stage's files in the
+run folder (``--out``) and writes its own; re-running a stage resumes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+from training.config import ConfigError, DatasetConfig, dataset_config_from_dict, load_json, \
+    save_json
+
+DEFAULT_OUT = Path("runs/default")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def add_dataset_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="run folder (default: %(default)s)")
+    p.add_argument("--episodes", type=_positive_int, default=None,
+                   help="episodes to simulate (default 10000, or the run's own)")
+    p.add_argument("--seed", type=_non_negative_int, default=None,
+                   help="run seed (default 0, or the run's own)")
+    p.add_argument("--workers", type=_positive_int, default=None,
+                   help="worker processes (default 2); results do not depend on it")
+    p.add_argument("--chunk-size", type=_positive_int, default=None,
+                   help="episodes per resumable unit (default 50)")
+
+
+def resolve_dataset_config(args: argparse.Namespace) -> DatasetConfig:
+    """The run folder's saved config if there is one, with the options given on top."""
+    saved = Path(args.out) / "config.json"
+    cfg = dataset_config_from_dict(load_json(saved)) if saved.exists() else DatasetConfig()
+    overrides = {name: getattr(args, attr) for name, attr in
+                 (("episodes", "episodes"), ("seed", "seed"), ("workers", "workers"),
+                  ("chunk_size", "chunk_size")) if getattr(args, attr, None) is not None}
+    return dataclasses.replace(cfg, **overrides).validate()
+
+
+def cmd_simulate(args) -> None:
+    from training.dataset import save_run_config
+    from training.simulate import run_simulate
+
+    cfg = resolve_dataset_config(args)
+    save_run_config(args.out, cfg)
+    run_simulate(args.out, cfg)
+
+
+def _episodes(args, cfg):
+    from training.chunks import load_chunks
+
+    return load_chunks(Path(args.out) / "simulate", cfg.episodes, cfg.chunk_size)
+
+
+def cmd_discover(args) -> None:
+    from training.discover import run_discover
+
+    cfg = resolve_dataset_config(args)
+    run_discover(args.out, cfg, _episodes(args, cfg))
+    report = load_json(Path(args.out) / "discovery.json")
+    print(f"discover: {report['n_clusters']} clusters {report['cluster_names']}, "
+          f"ARI vs geometry {report['ari_vs_geometry']}, noise points {report['noise_points']}")
+
+
+def cmd_render(args) -> None:
+    from training.dataset import write_manifest
+    from training.preview import save_examples
+    from training.render import run_render
+
+    cfg = resolve_dataset_config(args)
+    outcomes = load_json(Path(args.out) / "outcomes.json")["outcomes"]
+    records = run_render(args.out, cfg, _episodes(args, cfg), outcomes)
+    manifest = write_manifest(args.out, cfg, records)
+    save_examples(Path(args.out) / "examples.png", Path(args.out), manifest)
+    _save_noise_figure(args.out, cfg, _episodes(args, cfg), outcomes)
+
+
+def _save_noise_figure(out: Path, cfg: DatasetConfig, episodes, outcomes) -> None:
+    from training.noise import save_clean_vs_noisy_figure
+    from training.render import render_episode
+
+    shot = render_episode(episodes[0], outcomes[0], cfg, cfg.seed)
+    save_clean_vs_noisy_figure(Path(out) / "noise.png", shot["clean"], shot["depth"],
+                               shot["labels"])
+
+
+def cmd_dataset(args) -> None:
+    timings = {}
+    for name, fn in (("simulate", cmd_simulate), ("discover", cmd_discover),
+                     ("render", cmd_render)):
+        start = time.perf_counter()
+        fn(args)
+        timings[name] = round(time.perf_counter() - start, 2)
+    cfg = resolve_dataset_config(args)
+    save_json(Path(args.out) / "timings.json",
+              {"episodes": cfg.episodes, "workers": cfg.workers, "seconds": timings})
+    print(f"dataset: {cfg.episodes} episodes in {Path(args.out)} ({timings} s)")
+
+
+COMMANDS = {
+    "simulate": (cmd_simulate, "simulate the episodes (pybullet)"),
+    "discover": (cmd_discover, "cluster final object states into outcomes (DBSCAN)"),
+    "render": (cmd_render, "render noisy depth + labels, write the manifest and previews"),
+    "dataset": (cmd_dataset, "simulate + discover + render"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m training", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="stage", required=True, metavar="stage")
+    for name, (_, help_text) in COMMANDS.items():
+        add_dataset_args(sub.add_parser(name, help=help_text))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        COMMANDS[args.stage][0](args)
+    except (ConfigError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: run the same command again to resume", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,157 @@
+"""Stage 4: the dataset on disk (manifest + split) and its torch view for training.
+
+On disk (``<run>/``): ``images/NNNNNN_depth.png`` (16-bit, millimetres, 0 = invalid, like a
+Kinect's 16UC1) and ``images/NNNNNN_labels.png`` (ids of CONTRACTS §3, 255 = no depth), plus
+``manifest.json``: per image its seeds, camera, per-object outcomes, the outcomes present by
+the presence rule and the split (95/5 by episode).
+
+Training never decodes PNGs in its loop: ``build_cache`` shrinks every image once to the
+network's working size with the inference code's own ``resize_depth`` (so training sees exactly
+what the node will feed the network) and stores the result as one compressed array file.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from task_outcome_ros.labels import IGNORE, NUM_CLASSES
+from training.config import DatasetConfig, load_json, save_json, to_dict
+from training.seeding import STAGE_STREAMS
+
+SPLITS = ("train", "val")
+
+
+def split_episodes(n_episodes: int, val_fraction: float, seed: int) -> dict[str, list[int]]:
+    """A seeded permutation: the first round(val_fraction * n) episodes are validation."""
+    order = np.random.default_rng([seed, STAGE_STREAMS["split"]]).permutation(n_episodes)
+    n_val = int(round(val_fraction * n_episodes))
+    if n_episodes >= 2 and val_fraction > 0:
+        n_val = min(max(n_val, 1), n_episodes - 1)  # tiny runs still get both splits
+    return {"train": sorted(order[n_val:].tolist()), "val": sorted(order[:n_val].tolist())}
+
+
+def write_manifest(run_dir: Path, cfg: DatasetConfig, records: list[dict]) -> dict:
+    split = split_episodes(len(records), cfg.val_fraction, cfg.seed)
+    which = {i: name for name, ids in split.items() for i in ids}
+    images = []
+    for rec in records:
+        i = rec["episode"]
+        images.append({**rec, "split": which[i], "depth": f"images/{i:06d}_depth.png",
+                       "labels": f"images/{i:06d}_labels.png"})
+    manifest = {"seed": cfg.seed, "n_images": len(images), "config": to_dict(cfg),
+                "split_sizes": {k: len(v) for k, v in split.items()}, "images": images}
+    save_json(Path(run_dir) / "manifest.json", manifest)
+    return manifest
+
+
+def load_manifest(run_dir: Path) -> dict:
+    return load_json(Path(run_dir) / "manifest.json")
+
+
+def downsample_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Shrink a label image to (W, H) by majority vote over each block, ignoring 255.
+
+    Nearest-neighbour would keep whichever pixel the grid hits, often a noise hole (255) or a
+    one-pixel edge; a vote keeps what most of the block shows. Non-integer factors fall back to
+    nearest-neighbour.
+    """
+    import cv2
+
+    w, h = size
+    H, W = labels.shape
+    if H % h or W % w:
+        return cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST)
+    fy, fx = H // h, W // w
+    blocks = labels.reshape(h, fy, w, fx)
+    counts = np.stack([(blocks == c).sum(axis=(1, 3)) for c in range(NUM_CLASSES)])
+    out = counts.argmax(axis=0).astype(np.uint8)
+    out[counts.max(axis=0) == 0] = IGNORE
+    return out
+
+
+def _cache_one(args: tuple[str, int, tuple[int, int]]) -> tuple[np.ndarray, np.ndarray,
+                                                                 np.ndarray]:
+    from task_outcome_ros.model import resize_depth
+    from training.render import read_pair
+
+    run_dir, index, size = args
+    depth, labels = read_pair(Path(run_dir), index)
+    small_depth, valid_fraction = resize_depth(depth, size)
+    return (small_depth.astype(np.float16), valid_fraction.astype(np.float16),
+            downsample_labels(labels, size))
+
+
+def cache_path(run_dir: Path, split: str, size: tuple[int, int]) -> Path:
+    return Path(run_dir) / "cache" / f"{split}_{size[0]}x{size[1]}.npz"
+
+
+def build_cache(run_dir: Path, split: str, size: tuple[int, int], workers: int = 2) -> Path:
+    """Working-size arrays of one split (built once, reused by every training run)."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    path = cache_path(run_dir, split, size)
+    if path.exists():
+        return path
+    manifest = load_manifest(run_dir)
+    indices = [im["episode"] for im in manifest["images"] if im["split"] == split]
+    jobs = [(str(run_dir), i, tuple(size)) for i in indices]
+    if workers > 1 and len(jobs) > 64:
+        with mp.get_context("spawn").Pool(workers) as pool:
+            results = list(tqdm(pool.imap(_cache_one, jobs, chunksize=32), total=len(jobs),
+                                desc=f"cache {split}", unit="img"))
+    else:
+        results = [_cache_one(j) for j in tqdm(jobs, desc=f"cache {split}", unit="img")]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez(tmp, indices=np.array(indices, np.int64),
+             depth=np.stack([r[0] for r in results]) if results else np.zeros((0, *size[::-1])),
+             valid=np.stack([r[1] for r in results]) if results else np.zeros((0, *size[::-1])),
+             labels=np.stack([r[2] for r in results]) if results else np.zeros((0, *size[::-1])))
+    tmp.replace(path)
+    return path
+
+
+def load_cache(run_dir: Path, split: str, size: tuple[int, int], workers: int = 2) -> dict:
+    """{'indices', 'depth' (N,h,w) m, 'valid' (N,h,w) fraction, 'labels' (N,h,w) uint8}."""
+    with np.load(build_cache(run_dir, split, size, workers)) as data:
+        return {k: data[k] for k in data.files}
+
+
+class OutcomeDataset:
+    """A torch ``Dataset`` over one split at working size: (depth, valid, labels) tensors.
+
+    Subclassing torch's Dataset is not needed (duck typing); importing torch lazily keeps the
+    data-generation stages light.
+    """
+
+    def __init__(self, run_dir: Path, split: str, size: tuple[int, int], workers: int = 2):
+        self.arrays = load_cache(run_dir, split, size, workers)
+
+    def __len__(self) -> int:
+        return len(self.arrays["indices"])
+
+    def __getitem__(self, i: int):
+        import torch
+
+        return (torch.from_numpy(self.arrays["depth"][i].astype(np.float32)),
+                torch.from_numpy(self.arrays["valid"][i].astype(np.float32)),
+                torch.from_numpy(self.arrays["labels"][i].astype(np.int64)))
+
+
+def save_run_config(run_dir: Path, cfg: DatasetConfig) -> None:
+    """Save the resolved config; refuse to mix a run folder with a different config."""
+    path = Path(run_dir) / "config.json"
+    data = json.loads(json.dumps(to_dict(cfg)))  # tuples -> lists, as they come back from disk
+    comparable = {k: v for k, v in data.items() if k != "workers"}
+    if path.exists():
+        old = {k: v for k, v in load_json(path).items() if k != "workers"}
+        if old != comparable:
+            raise ValueError(
+                f"{path} holds a different config than requested; use another --out folder "
+                "or the same options to resume")
+    save_json(path, data)

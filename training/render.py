@@ -1,0 +1,272 @@
+"""Stage 3: render one depth image per episode from a random camera in the envelope, with exact
+per-pixel labels, then apply the Kinect noise model.
+
+The scene is nothing but boxes on a plane, so instead of a general rasteriser the renderer
+ray-casts analytically: a slab test per box, evaluated only inside the box's projected
+bounding rectangle. Measured on this 2-core machine this is ~10x faster than pybullet's
+TinyRenderer at 640 x 480 (~65 ms), and it gives exact depth, labels and surface normals (the
+noise model needs the incidence angle) from one pass, so labels cannot drift from depth.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from task_outcome_ros.labels import BACKGROUND, CONTAINER, OUTCOME_IDS, outcome_pixel_counts, \
+    outcomes_present
+from training.chunks import load_chunks, run_chunks
+from training.config import CameraConfig, DatasetConfig, SceneConfig
+from training.geometry import quat_to_matrix
+from training.noise import apply_kinect_noise
+from training.seeding import episode_rng, episode_seed
+from training.simulate import container_boxes
+
+NEAR = 0.05  # m: hits closer than this to the camera are ignored
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: intrinsics and the pose of its optical frame (x right, y down, z fwd)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    position: np.ndarray      # (3,) world
+    rotation: np.ndarray      # (3, 3) columns = optical x, y, z axes in world
+
+    def to_dict(self) -> dict:
+        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
+                "cx": self.cx, "cy": self.cy, "position": self.position.tolist(),
+                "rotation": self.rotation.tolist()}
+
+
+def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Rotation whose columns are the optical frame axes for a camera at ``position`` looking at
+    ``target`` with no roll (image x stays horizontal)."""
+    forward = target - position
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return np.stack([right, down, forward], axis=1)
+
+
+def draw_camera(cam: CameraConfig, scene: SceneConfig, floor_z: float,
+                rng: np.random.Generator) -> tuple[Camera, dict]:
+    """A camera from the envelope (CONTRACTS §4); returns it and the draws, for the manifest."""
+    f = float(rng.uniform(*cam.focal_px))
+    cx = (cam.width - 1) / 2 + float(rng.uniform(-cam.principal_offset_px,
+                                                 cam.principal_offset_px))
+    cy = (cam.height - 1) / 2 + float(rng.uniform(-cam.principal_offset_px,
+                                                  cam.principal_offset_px))
+    distance = float(rng.uniform(*cam.distance))
+    elevation = float(rng.uniform(*cam.elevation_deg))
+    azimuth = float(rng.uniform(0.0, 360.0))
+    # Look-at point uniform in a ball of radius target_offset around the container centre.
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    radius = cam.target_offset * float(rng.uniform()) ** (1 / 3)
+    centre = np.array([0.0, 0.0, floor_z + scene.wall_height / 2])
+    target = centre + radius * direction
+    el, az = math.radians(elevation), math.radians(azimuth)
+    position = target + distance * np.array([math.cos(el) * math.cos(az),
+                                             math.cos(el) * math.sin(az), math.sin(el)])
+    camera = Camera(cam.width, cam.height, f, f, cx, cy, position, look_at(position, target))
+    draws = {"distance": distance, "elevation_deg": elevation, "azimuth_deg": azimuth,
+             "look_at": target.tolist()}
+    return camera, draws
+
+
+@dataclass
+class SceneBox:
+    half_extents: np.ndarray  # (3,)
+    centre: np.ndarray        # (3,) world
+    rotation: np.ndarray      # (3, 3) box axes in world
+    label: int
+
+
+def scene_boxes(episode: dict, outcomes: list[str], scene: SceneConfig) -> list[SceneBox]:
+    """The container's five boxes and the objects, each with its pixel label."""
+    yaw, floor_z = episode["container_yaw"], episode["floor_z"]
+    c, s = math.cos(yaw), math.sin(yaw)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    boxes = [SceneBox(np.array(h), rot @ np.array(p) + [0.0, 0.0, floor_z], rot, CONTAINER)
+             for h, p in container_boxes(scene)]
+    for obj, outcome in zip(episode["objects"], outcomes):
+        boxes.append(SceneBox(np.array(obj["size"]) / 2, np.array(obj["position"]),
+                              quat_to_matrix(obj["orientation"]), OUTCOME_IDS[outcome]))
+    return boxes
+
+
+def _pixel_rays(camera: Camera) -> np.ndarray:
+    """World direction of every pixel's ray as (3, H, W), scaled so its optical-axis component
+    is 1 (so the ray parameter t is the depth along the optical axis). Channel-first keeps each
+    component contiguous for the per-axis slab arithmetic below."""
+    u = (np.arange(camera.width, dtype=np.float32) - camera.cx) / camera.fx
+    v = (np.arange(camera.height, dtype=np.float32) - camera.cy) / camera.fy
+    r = camera.rotation.astype(np.float32)
+    return np.stack([r[k, 0] * u[None, :] + r[k, 1] * v[:, None] + r[k, 2] for k in range(3)])
+
+
+def _box_rectangle(box: SceneBox, camera: Camera) -> tuple[int, int, int, int] | None:
+    """Pixel rectangle (v0, v1, u0, u1) covering the box's projection; None if off-screen."""
+    signs = np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)], float)
+    corners = (signs * box.half_extents) @ box.rotation.T + box.centre
+    local = (corners - camera.position) @ camera.rotation
+    if np.any(local[:, 2] <= NEAR):  # straddles the camera plane: test the whole image
+        return 0, camera.height, 0, camera.width
+    u = camera.fx * local[:, 0] / local[:, 2] + camera.cx
+    v = camera.fy * local[:, 1] / local[:, 2] + camera.cy
+    u0, u1 = max(0, int(math.floor(u.min()))), min(camera.width, int(math.ceil(u.max())) + 1)
+    v0, v1 = max(0, int(math.floor(v.min()))), min(camera.height, int(math.ceil(v.max())) + 1)
+    if u0 >= u1 or v0 >= v1:
+        return None
+    return v0, v1, u0, u1
+
+
+def render(boxes: list[SceneBox], floor_z: float, camera: Camera
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Clean depth (float32 m along the optical axis, NaN = no hit), labels (uint8) and the
+    |cosine| of the incidence angle of every pixel."""
+    rays = _pixel_rays(camera)
+    norm = np.sqrt(rays[0] ** 2 + rays[1] ** 2 + rays[2] ** 2)
+    depth = np.full((camera.height, camera.width), np.inf, np.float32)
+    labels = np.full((camera.height, camera.width), BACKGROUND, np.uint8)
+    cosine = np.zeros((camera.height, camera.width), np.float32)
+    # The floor plane z = floor_z.
+    dz = rays[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_floor = np.float32(floor_z - camera.position[2]) / dz
+    hit = (dz < 0) & (t_floor > NEAR)
+    depth[hit] = t_floor[hit]
+    cosine[hit] = np.abs(dz[hit]) / norm[hit]
+    for box in boxes:
+        rect = _box_rectangle(box, camera)
+        if rect is not None:
+            _cast_box(box, camera, rays, norm, rect, depth, labels, cosine)
+    depth[~np.isfinite(depth)] = np.nan
+    return depth, labels, cosine
+
+
+def _cast_box(box: SceneBox, camera: Camera, rays: np.ndarray, norm: np.ndarray,
+              rect: tuple[int, int, int, int], depth: np.ndarray, labels: np.ndarray,
+              cosine: np.ndarray) -> None:
+    """Slab test of one box against the rays inside ``rect``; z-buffered write of the hits."""
+    v0, v1, u0, u1 = rect
+    block = rays[:, v0:v1, u0:u1]
+    rot = box.rotation.astype(np.float32)
+    origin = (camera.position - box.centre) @ box.rotation      # camera in the box frame
+    t_near = np.full(block.shape[1:], -np.inf, np.float32)
+    t_far = np.full(block.shape[1:], np.inf, np.float32)
+    entry_axis_d = np.zeros(block.shape[1:], np.float32)        # ray component along entry axis
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k in range(3):
+            d = block[0] * rot[0, k] + block[1] * rot[1, k] + block[2] * rot[2, k]
+            inv = 1.0 / d
+            t1 = (-box.half_extents[k] - origin[k]) * inv
+            t2 = (box.half_extents[k] - origin[k]) * inv
+            lo, hi = np.fmin(t1, t2), np.fmax(t1, t2)
+            enters_here = lo > t_near
+            t_near = np.where(enters_here, lo, t_near)
+            entry_axis_d = np.where(enters_here, d, entry_axis_d)
+            t_far = np.fmin(t_far, hi)
+    zbuf = depth[v0:v1, u0:u1]
+    closer = (t_far >= t_near) & (t_near > NEAR) & (t_near < zbuf)
+    zbuf[closer] = t_near[closer]
+    labels[v0:v1, u0:u1][closer] = box.label
+    cosine[v0:v1, u0:u1][closer] = (np.abs(entry_axis_d) / norm[v0:v1, u0:u1])[closer]
+
+
+def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int
+                   ) -> dict:
+    """Camera draw, clean render and noise for one episode; returns arrays and the record."""
+    index = episode["episode"]
+    camera, draws = draw_camera(cfg.camera, cfg.scene, episode["floor_z"],
+                                episode_rng(seed, index, "render"))
+    clean, labels, cosine = render(scene_boxes(episode, outcomes, cfg.scene), episode["floor_z"],
+                                   camera)
+    noisy, noisy_labels = apply_kinect_noise(clean, labels, cosine, camera.fx, cfg.noise,
+                                             episode_rng(seed, index, "noise"))
+    record = {
+        "episode": index,
+        "seed": {"render": episode_seed(seed, index, "render"),
+                 "noise": episode_seed(seed, index, "noise"),
+                 "simulate": episode_seed(seed, index, "simulate")},
+        "camera": {**camera.to_dict(), **draws},
+        "objects": outcomes,
+        "present": outcomes_present(noisy_labels),
+        "pixel_counts": outcome_pixel_counts(noisy_labels),
+    }
+    return {"clean": clean, "depth": noisy, "labels": noisy_labels, "record": record}
+
+
+# ---- on-disk format: 16-bit PNG depth in mm (0 = invalid, as a Kinect's 16UC1) + PNG labels --
+
+def image_paths(run_dir: Path, index: int) -> tuple[Path, Path]:
+    folder = Path(run_dir) / "images"
+    return folder / f"{index:06d}_depth.png", folder / f"{index:06d}_labels.png"
+
+
+def write_pair(run_dir: Path, index: int, depth_m: np.ndarray, labels: np.ndarray) -> None:
+    from task_outcome_ros.depth import encode_depth
+
+    depth_path, label_path = image_paths(run_dir, index)
+    depth_path.parent.mkdir(parents=True, exist_ok=True)
+    data, _ = encode_depth(depth_m, "16UC1")
+    mm = np.frombuffer(data, "<u2").reshape(depth_m.shape)
+    for path, array in ((depth_path, mm), (label_path, labels)):
+        tmp = path.with_name(path.stem + ".tmp.png")
+        if not cv2.imwrite(str(tmp), array):
+            raise OSError(f"could not write {tmp}")
+        tmp.replace(path)
+
+
+def read_pair(run_dir: Path, index: int) -> tuple[np.ndarray, np.ndarray]:
+    """(depth float32 metres with NaN invalid, labels uint8) of one stored image."""
+    from task_outcome_ros.depth import sanitize_depth
+
+    depth_path, label_path = image_paths(run_dir, index)
+    mm = cv2.imread(str(depth_path), cv2.IMREAD_UNCHANGED)
+    labels = cv2.imread(str(label_path), cv2.IMREAD_UNCHANGED)
+    if mm is None or labels is None or mm.dtype != np.uint16 or labels.dtype != np.uint8:
+        raise ValueError(f"{depth_path} / {label_path}: missing or not a 16-bit depth PNG and "
+                         "an 8-bit label PNG; re-run `python -m training render` to rebuild")
+    return sanitize_depth(mm.astype(np.float32) * 1e-3), labels
+
+
+# ---- stage entry point ------------------------------------------------------------------------
+
+_STATE: dict = {}
+
+
+def _init_worker(run_dir: str, cfg: DatasetConfig, episodes: list[dict],
+                 outcomes: list[list[str]]) -> None:
+    cv2.setNumThreads(1)  # one process per core already; OpenCV threads would oversubscribe
+    _STATE.update(run_dir=run_dir, cfg=cfg, episodes=episodes, outcomes=outcomes)
+
+
+def _render_chunk(episodes: tuple[int, int]) -> dict:
+    run_dir, cfg = _STATE["run_dir"], _STATE["cfg"]
+    records = []
+    for i in range(*episodes):
+        out = render_episode(_STATE["episodes"][i], _STATE["outcomes"][i], cfg, cfg.seed)
+        write_pair(Path(run_dir), i, out["depth"], out["labels"])
+        records.append(out["record"])
+    return {"episodes": records}
+
+
+def run_render(run_dir: Path, cfg: DatasetConfig, episodes: list[dict],
+               outcomes: list[list[str]]) -> list[dict]:
+    """Render every episode into <run>/images/ (resumable); returns the per-image records."""
+    stage_dir = Path(run_dir) / "render"
+    run_chunks(stage_dir, cfg.episodes, cfg.chunk_size, cfg.workers, _render_chunk, "render",
+               initializer=_init_worker, initargs=(str(run_dir), cfg, episodes, outcomes))
+    return load_chunks(stage_dir, cfg.episodes, cfg.chunk_size)
