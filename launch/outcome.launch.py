@@ -12,11 +12,10 @@ FASTRTPS_DEFAULT_PROFILES_FILE=<share>/task_outcome_ros/config/fastdds_shm.xml i
 import os
 
 from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
-
-from launch import LaunchDescription
 
 
 def generate_launch_description() -> LaunchDescription:

@@ -125,9 +125,18 @@ def preprocess_batch(depth_m: torch.Tensor, input_size: tuple[int, int],
     frac = mask.clamp(0.0, 1.0)
     has = frac > 1e-6
     depth = torch.where(has, filled / frac.clamp_min(1e-6), torch.zeros_like(filled))
+    return network_input(depth[:, 0], frac[:, 0], norm)
+
+
+def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
+                  normalisation: dict[str, Any] | None = None) -> torch.Tensor:
+    """(N, h, w) working-size depth (metres, as ``resize_depth`` gives) and valid fraction ->
+    (N, 2, h, w) network input. Training uses this on its cached ``resize_depth`` output."""
+    norm = check_normalisation(normalisation or DEFAULT_NORMALISATION)
+    has = valid_fraction > 1e-6
     z = ((depth - norm["offset_m"]) / norm["scale_m"]).clamp(-norm["clip"], norm["clip"])
     z = torch.where(has, z, torch.full_like(z, norm["invalid_value"]))
-    return torch.cat([z, torch.where(has, frac, torch.zeros_like(frac))], dim=1)
+    return torch.stack([z, torch.where(has, valid_fraction, torch.zeros_like(z))], dim=1)
 
 
 def _conv_block(c_in: int, c_out: int, n_convs: int = 2) -> nn.Sequential:

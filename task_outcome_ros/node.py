@@ -291,9 +291,15 @@ class OutcomeNode(Node):
             try:
                 self._process(msg, t_received, camera_info, dropped)
             except Exception as exc:  # never let one frame kill the worker
+                if self._stop or not self.context.ok():
+                    return  # shutting down: publishers may already be gone
                 self.get_logger().error(f"unexpected error on a frame: {exc!r}",
                                         throttle_duration_sec=WARN_THROTTLE_S)
-                self._publish_error(msg.header, f"internal error: {exc}", dropped, t_received)
+                try:
+                    self._publish_error(msg.header, f"internal error: {exc}", dropped,
+                                        t_received)
+                except Exception:  # already logged; keep the worker alive
+                    pass
 
     def _process(self, msg: Image, t_received: float, camera_info: CameraInfo | None,
                  dropped: int) -> None:
@@ -400,7 +406,7 @@ def _timing_values(inference_ms: float | None, dropped: int, t_received: float,
                    ) -> list[KeyValue]:
     values = [] if inference_ms is None else [
         KeyValue(key="inference_ms", value=f"{float(inference_ms):.2f}")]
-    # latency_ms: arrival at the node -> results published (queueing + decode + inference).
+    # latency_ms: arrival at the node -> status published (queueing + decode + inference).
     latency_ms = (time.monotonic() - t_received) * 1e3
     return values + [KeyValue(key="dropped_frames", value=str(dropped)),
                      KeyValue(key="latency_ms", value=f"{latency_ms:.2f}")]
@@ -428,8 +434,11 @@ def _exc_reason(exc: Exception) -> str:
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``outcome_node``; returns the process exit code."""
-    rclpy.init(args=args)
-    node = None
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # malformed --ros-args: rcl's message says which
+        print(f"[FATAL] [{NODE_NAME}]: cannot start: {_exc_reason(exc)}", file=sys.stderr)
+        return 2
     try:
         node = OutcomeNode()
     except StartupError as exc:

@@ -1,12 +1,16 @@
 """The real outcome_node (subprocess, console script) exchanging real messages over DDS.
 
-One node process serves the whole module (module-scoped fixture). Its checkpoint is a
-random-init network whose head bias makes ``fell_outside`` win on every pixel, so the
-model's answer is known by construction (one object covering the image) and the 3-D and
-marker outputs can be checked exactly; everything else asserts structure and consistency
-(sizes, headers, status fields agreeing with the labels received), which must hold for any
-model. Tests with the shipped checkpoint and known-truth images live elsewhere.
-"""
+Two node processes serve the whole module (module-scoped fixtures):
+
+- ``session``: the shipped YAML plus a checkpoint whose head bias makes ``fell_outside`` win
+  on every pixel, so the answer is known by construction (one object covering the image) and
+  the WARN level, 3-D centroids and markers can be checked exactly;
+- ``random_session``: a plain random-init checkpoint (its labels depend on the depth values,
+  so decoding mistakes show up), in namespace /cam1 with qos:=reliable and no overlay.
+
+Everything else asserts structure and consistency (sizes, headers, status fields agreeing with
+the labels received), which must hold for any model. Tests with the shipped checkpoint and
+known-truth images live elsewhere."""
 
 from __future__ import annotations
 
@@ -23,8 +27,9 @@ pytest.importorskip("rclpy", reason="ROS 2 rclpy is not installed")
 pytest.importorskip("torch", reason="torch is not installed")
 
 import node_helpers as nh  # noqa: E402
+import rcl_interfaces.srv as rcl_srv  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
-from rcl_interfaces.srv import DescribeParameters, GetParameters  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
 from task_outcome_ros import labels as L  # noqa: E402
@@ -47,6 +52,25 @@ def session(tmp_path_factory):
         # First exchange: the node's reader may match our writer a moment after we see it.
         client.request(nh.depth_msg(np.full((8, 8), 2.0, np.float32), stamp=client.next_stamp()),
                        timeout=30.0, resend_every=0.5)
+        yield client, proc
+    finally:
+        client.close()
+        proc.stop()
+
+
+@pytest.fixture(scope="module")
+def random_session(tmp_path_factory):
+    """A second node: plain random-init model (labels depend on depth), namespace /cam1,
+    qos:=reliable, publish_overlay:=false."""
+    tmp = tmp_path_factory.mktemp("outcome_node_random")
+    domain = DOMAIN_ID % 200 + 1
+    ckpt = nh.make_checkpoint(tmp / "random.pt", seed=1)
+    proc = nh.NodeProcess(["-r", "__ns:=/cam1", "-p", f"model_path:={ckpt}", "-p",
+                           "qos:=reliable", "-p", "publish_overlay:=false"],
+                          domain, tmp / "node.log")
+    client = nh.OutcomeClient(domain, namespace="/cam1")
+    try:
+        client.wait_for_node(proc)
         yield client, proc
     finally:
         client.close()
@@ -113,13 +137,14 @@ def test_parameters_declared_with_descriptions_and_defaults(session):
     client, _ = session
     names = ["model_path", "device", "backend", "presence_min_pixels", "publish_overlay",
              "overlay_alpha", "publish_markers", "qos"]
-    describe = client.node.create_client(DescribeParameters, "/outcome_node/describe_parameters")
-    get = client.node.create_client(GetParameters, "/outcome_node/get_parameters")
+    describe = client.node.create_client(rcl_srv.DescribeParameters,
+                                         "/outcome_node/describe_parameters")
+    get = client.node.create_client(rcl_srv.GetParameters, "/outcome_node/get_parameters")
     try:
         assert client.spin_until(lambda: describe.service_is_ready() and get.service_is_ready(),
                                  20.0)
-        fut_d = describe.call_async(DescribeParameters.Request(names=names))
-        fut_g = get.call_async(GetParameters.Request(names=names))
+        fut_d = describe.call_async(rcl_srv.DescribeParameters.Request(names=names))
+        fut_g = get.call_async(rcl_srv.GetParameters.Request(names=names))
         assert client.spin_until(lambda: fut_d.done() and fut_g.done(), 20.0)
     finally:
         client.node.destroy_client(describe)
@@ -138,6 +163,36 @@ def test_parameters_declared_with_descriptions_and_defaults(session):
     assert values["publish_markers"].bool_value is True
 
 
+def _set_parameters(client, params) -> list:
+    srv = client.node.create_client(rcl_srv.SetParameters, "/outcome_node/set_parameters")
+    try:
+        assert client.spin_until(srv.service_is_ready, 20.0)
+        future = srv.call_async(rcl_srv.SetParameters.Request(
+            parameters=[Parameter(name, value=value).to_parameter_msg()
+                        for name, value in params]))
+        assert client.spin_until(future.done, 20.0)
+        return [r.successful for r in future.result().results]
+    finally:
+        client.node.destroy_client(srv)
+
+
+def test_runtime_parameters(session):
+    """overlay_alpha is live and range-checked; start-up-only parameters are read-only."""
+    client, _ = session
+    assert _set_parameters(client, [("overlay_alpha", 1.5), ("qos", "reliable"),
+                                    ("model_path", "/tmp/x.pt")]) == [False, False, False]
+    assert _set_parameters(client, [("overlay_alpha", 1.0)]) == [True]
+    try:
+        msg = nh.depth_msg(scene(48, 64), stamp=client.next_stamp())
+        reply = client.request(msg, ("status", "labels", "overlay"))
+        check_reply(msg, reply)
+        overlay = np.frombuffer(bytes(reply.overlay.data), np.uint8).reshape(48, 64, 3)
+        # alpha 1: pure label colours (this checkpoint labels every pixel fell_outside).
+        assert (overlay == L.CLASS_COLOURS[L.FELL_OUTSIDE]).all()
+    finally:
+        assert _set_parameters(client, [("overlay_alpha", 0.5)]) == [True]
+
+
 def test_float_depth_640x480(session):
     client, _ = session
     msg = nh.depth_msg(scene(), "32FC1", stamp=client.next_stamp(), frame_id="cam_a_optical")
@@ -149,8 +204,8 @@ def test_float_depth_640x480(session):
     assert nh.status_values(reply.status)["fell_outside.objects"] == "1"
 
 
-def test_inf_and_negative_depth_are_invalid(session):
-    client, _ = session
+def test_inf_and_negative_depth_are_invalid(random_session):
+    client, _ = random_session
     base = scene(96, 128)
     weird = base.copy()
     weird[40:50, 10:40] = np.inf
@@ -181,16 +236,18 @@ VARIANTS = [
 @pytest.mark.parametrize("encoding,bigendian,pad,size", VARIANTS,
                          ids=[f"{e}-{'be' if b else 'le'}-pad{p}-{s[1]}x{s[0]}"
                               for e, b, p, s in VARIANTS])
-def test_encodings_endianness_padding_sizes(session, encoding, bigendian, pad, size):
-    """Every variant keeps size and header and gives the same labels as its plain LE twin."""
-    client, _ = session
+def test_encodings_endianness_padding_sizes(random_session, encoding, bigendian, pad, size):
+    """Every variant keeps size and header and gives the same labels as its plain LE twin
+    (the random-init model of this node labels byte-swapped or misaligned depth differently).
+    """
+    client, _ = random_session
     depth = scene(*size)
     plain = nh.depth_msg(depth, encoding, stamp=client.next_stamp(), frame_id="plain")
     msg = nh.depth_msg(depth, encoding, stamp=client.next_stamp(), frame_id="variant_frame",
                     bigendian=bigendian, pad=pad)
     assert msg.step == size[1] * (4 if encoding == "32FC1" else 2) + pad
     ref = check_reply(plain, client.request(plain, ("status", "labels")))
-    got = check_reply(msg, client.request(msg, ("status", "labels", "overlay")))
+    got = check_reply(msg, client.request(msg, ("status", "labels")))
     np.testing.assert_array_equal(got, ref)
 
 
@@ -304,7 +361,7 @@ def test_burst_keeps_only_the_newest_and_counts_drops(session):
     burst = [nh.depth_msg(scene(), stamp=client.next_stamp(), frame_id="burst") for _ in range(12)]
     for msg in burst[:-1]:
         client.image_pub.publish(msg)
-    last = client.request(burst[-1], ("status", "labels"), resend_every=30.0)
+    last = client.request(burst[-1], ("status", "labels"), resend_every=5.0)
     check_reply(burst[-1], last)
     processed = sum(nh.header_key(m.header) in client.replies for m in burst)
     dropped = int(nh.status_values(last.status)["dropped_frames"]) - dropped_before
@@ -314,25 +371,17 @@ def test_burst_keeps_only_the_newest_and_counts_drops(session):
     assert proc.alive()
 
 
-def test_namespace_reliable_qos_and_no_overlay(tmp_path):
+def test_namespace_reliable_qos_and_no_overlay(random_session):
     """Relative topic names follow the namespace; qos:=reliable and publish_overlay:=false."""
-    domain = (DOMAIN_ID % 200) + 1
-    ckpt = nh.make_checkpoint(tmp_path / "random.pt", seed=1)
-    proc = nh.NodeProcess(["-r", "__ns:=/cam1", "-p", f"model_path:={ckpt}", "-p",
-                           "qos:=reliable", "-p", "publish_overlay:=false"],
-                          domain, tmp_path / "node.log")
-    client = nh.OutcomeClient(domain, namespace="/cam1")
-    try:
-        client.wait_for_node(proc)
-        assert client.image_pub.topic_name == "/cam1/depth/image_raw"
-        msgs = [nh.depth_msg(scene(60, 80), "16UC1", stamp=client.next_stamp()) for _ in range(2)]
-        for msg in msgs:  # reliable input: no resend needed even for the first frame
-            check_reply(msg, client.request(msg, ("status", "labels"), resend_every=20.0))
-        assert all(client.replies[nh.header_key(m.header)].overlay is None for m in msgs)
-        assert "qos reliable" in proc.log()
-    finally:
-        client.close()
-        assert proc.stop() == 0
+    client, proc = random_session
+    assert client.image_pub.topic_name == "/cam1/depth/image_raw"
+    msgs = [nh.depth_msg(scene(60, 80), "16UC1", stamp=client.next_stamp()) for _ in range(2)]
+    for msg in msgs:  # reliable input: no resend needed, even for the first frame
+        check_reply(msg, client.request(msg, ("status", "labels"), resend_every=20.0))
+    # Outputs are published in order labels, status, (overlay), markers: had an overlay been
+    # published for the first frame, it would be here by the time the second one is answered.
+    assert all(client.replies[nh.header_key(m.header)].overlay is None for m in msgs)
+    assert "qos reliable" in proc.log()
 
 
 @pytest.mark.parametrize("case", ["qos", "presence_min_pixels", "overlay_alpha", "missing_model",
@@ -417,9 +466,9 @@ def test_package_imports_without_rclpy():
     assert result.stdout.startswith("ok")
 
 
-def test_shutdown_is_clean(session):
-    """Last: SIGINT ends the node with exit code 0 and no traceback."""
-    _, proc = session
-    assert proc.alive()
-    assert proc.stop() == 0
-    assert "Traceback" not in proc.log(), proc.log()
+def test_shutdown_is_clean(session, random_session):
+    """Last: SIGINT ends both nodes with exit code 0 and no traceback."""
+    for _, proc in (session, random_session):
+        assert proc.alive()
+        assert proc.stop() == 0
+        assert "Traceback" not in proc.log(), proc.log()

@@ -13,8 +13,13 @@ import sys
 import time
 from pathlib import Path
 
-from training.config import ConfigError, DatasetConfig, dataset_config_from_dict, load_json, \
-    save_json
+from training.config import (
+    ConfigError,
+    DatasetConfig,
+    dataset_config_from_dict,
+    load_json,
+    save_json,
+)
 
 DEFAULT_OUT = Path("runs/default")
 
@@ -40,7 +45,8 @@ def _non_negative_int(text: str) -> int:
 
 
 def add_dataset_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="run folder (default: %(default)s)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT,
+                   help="run folder (default: %(default)s)")
     p.add_argument("--episodes", type=_positive_int, default=None,
                    help="episodes to simulate (default 10000, or the run's own)")
     p.add_argument("--seed", type=_non_negative_int, default=None,
@@ -121,11 +127,97 @@ def cmd_dataset(args) -> None:
     print(f"dataset: {cfg.episodes} episodes in {Path(args.out)} ({timings} s)")
 
 
+def add_train_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--epochs", type=_positive_int, default=None, help="training epochs")
+    p.add_argument("--batch-size", type=_positive_int, default=None)
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--base-width", type=_positive_int, default=None, help="FCN width")
+    p.add_argument("--input-size", type=int, nargs=2, metavar=("W", "H"), default=None,
+                   help="working resolution (default 160 120)")
+    p.add_argument("--max-minutes", type=float, default=None, help="training time budget")
+    p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None)
+    p.add_argument("--amp", choices=("auto", "bf16", "off"), default=None)
+    p.add_argument("--train-seed", type=_non_negative_int, default=None)
+    p.add_argument("--no-resume", action="store_true", help="start training from scratch")
+    p.add_argument("--ship", action="store_true",
+                   help="copy the best checkpoint (+ ONNX) into task_outcome_ros/models/")
+
+
+def resolve_train_config(args: argparse.Namespace):
+    from training.config import TrainConfig
+
+    fields = {"epochs": "epochs", "batch_size": "batch_size", "lr": "lr",
+              "base_width": "base_width", "max_minutes": "max_minutes", "device": "device",
+              "amp": "amp", "seed": "train_seed"}
+    overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
+    if args.input_size is not None:
+        overrides["input_size"] = tuple(args.input_size)
+    return dataclasses.replace(TrainConfig(), **overrides).validate()
+
+
+def cmd_train(args) -> None:
+    from training.train import train
+
+    cfg = resolve_train_config(args)
+    best = train(args.out, cfg, resume=not args.no_resume)
+    print(f"train: best checkpoint {best}")
+    if args.ship:
+        ship(best)
+
+
+def ship(best: Path) -> Path:
+    """Install a checkpoint as the package's default model, with its ONNX export beside it."""
+    import shutil
+
+    from task_outcome_ros.inference import default_model_path
+    from task_outcome_ros.onnx_export import export_onnx
+
+    target = default_model_path()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(best, target)
+    export_onnx(target)
+    print(f"shipped: {target} (+ ONNX)")
+    return target
+
+
+def cmd_evaluate(args) -> None:
+    from training.evaluate import evaluate
+
+    model = args.checkpoint or Path(args.out) / "train" / "best.pt"
+    data = args.data or Path(args.out)
+    out = args.eval_out or (Path(args.out) / ("eval" if data == Path(args.out)
+                                              else f"eval_{Path(data).name}"))
+    report = evaluate(model, data, args.split, out, backend=args.backend)
+    print(f"evaluate: {report['n_images']} images of {data} ({args.split}): image all-correct "
+          f"{report['image_all_correct']:.4f}, pixel mIoU {report['pixel_miou']:.4f}, "
+          f"presence recall {report['presence_recall']} -> {out}/eval.json")
+
+
+def add_eval_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", type=Path, default=None,
+                   help="model to evaluate (default: <out>/train/best.pt)")
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset run folder to evaluate on (default: --out)")
+    p.add_argument("--split", choices=("val", "train", "all"), default="val")
+    p.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto")
+    p.add_argument("--eval-out", type=Path, default=None, help="where eval.json goes")
+
+
+def cmd_run(args) -> None:
+    """Everything: dataset, train (and ship), evaluate on the validation split."""
+    cmd_dataset(args)
+    cmd_train(args)
+    cmd_evaluate(args)
+
+
 COMMANDS = {
     "simulate": (cmd_simulate, "simulate the episodes (pybullet)"),
     "discover": (cmd_discover, "cluster final object states into outcomes (DBSCAN)"),
     "render": (cmd_render, "render noisy depth + labels, write the manifest and previews"),
     "dataset": (cmd_dataset, "simulate + discover + render"),
+    "train": (cmd_train, "train the FCN on the run's dataset"),
+    "evaluate": (cmd_evaluate, "evaluate a checkpoint with the paper's image-level metric"),
+    "run": (cmd_run, "dataset + train + evaluate"),
 }
 
 
@@ -134,7 +226,12 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="stage", required=True, metavar="stage")
     for name, (_, help_text) in COMMANDS.items():
-        add_dataset_args(sub.add_parser(name, help=help_text))
+        p = sub.add_parser(name, help=help_text)
+        add_dataset_args(p)
+        if name in ("train", "run"):
+            add_train_args(p)
+        if name in ("evaluate", "run"):
+            add_eval_args(p)
     return parser
 
 

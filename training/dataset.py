@@ -43,7 +43,10 @@ def write_manifest(run_dir: Path, cfg: DatasetConfig, records: list[dict]) -> di
         i = rec["episode"]
         images.append({**rec, "split": which[i], "depth": f"images/{i:06d}_depth.png",
                        "labels": f"images/{i:06d}_labels.png"})
-    manifest = {"seed": cfg.seed, "n_images": len(images), "config": to_dict(cfg),
+    # The worker count is how the data was made, not what it is: leaving it out keeps the
+    # manifest byte-identical for any --workers (and across resumes with another count).
+    config = {k: v for k, v in to_dict(cfg).items() if k != "workers"}
+    manifest = {"seed": cfg.seed, "n_images": len(images), "config": config,
                 "split_sizes": {k: len(v) for k, v in split.items()}, "images": images}
     save_json(Path(run_dir) / "manifest.json", manifest)
     return manifest

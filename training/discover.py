@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from task_outcome_ros.labels import OUTCOME_NAMES
-from training.config import DatasetConfig, SceneConfig, save_json
+from training.config import DatasetConfig, SceneConfig, load_json, save_json
 from training.geometry import geometric_outcome, object_measurements
 
 COM_OFFSET_CLIP = 1.5
@@ -118,9 +118,24 @@ def run_discover(run_dir: Path, cfg: DatasetConfig, episodes: list[dict]) -> lis
     for (ep, _), name in zip(owner, names):
         per_episode[ep].append(name)
     outcomes = [per_episode[e["episode"]] for e in episodes]
+    _invalidate_stale_renders(run_dir, outcomes)
     save_json(run_dir / "outcomes.json", {"outcomes": outcomes})
     plot_clusters(run_dir / "discovery.png", result, geometry, report)
     return outcomes
+
+
+def _invalidate_stale_renders(run_dir: Path, outcomes: list[list[str]]) -> None:
+    """Rendered labels come from outcomes.json: if the outcomes changed, the old render chunks
+    would be resumed with stale labels, so they are removed (images are overwritten later)."""
+    import shutil
+
+    previous = run_dir / "outcomes.json"
+    if previous.exists() and load_json(previous)["outcomes"] != outcomes:
+        for stale in (run_dir / "render", run_dir / "cache"):
+            if stale.exists():
+                shutil.rmtree(stale)
+        (run_dir / "manifest.json").unlink(missing_ok=True)
+        print("discover: outcomes changed; removed the stale render/, cache/ and manifest")
 
 
 def plot_clusters(path: Path, result: dict, geometry: list[str], report: dict) -> None:
@@ -153,7 +168,7 @@ def plot_clusters(path: Path, result: dict, geometry: list[str], report: dict) -
     ax.set_ylabel("volume outside container (log scale, 0 = none, 1 = all)")
     ax.set_title(f"Discovered outcomes: {report['n_clusters']} clusters, "
                  f"ARI vs geometry {report['ari_vs_geometry']:.4f}")
-    ax.legend(loc="center left", fontsize=8, markerscale=2)
+    ax.legend(loc="center right", fontsize=8, markerscale=2)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -17,8 +17,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from task_outcome_ros.labels import BACKGROUND, CONTAINER, OUTCOME_IDS, outcome_pixel_counts, \
-    outcomes_present
+from task_outcome_ros.labels import (
+    BACKGROUND,
+    CONTAINER,
+    OUTCOME_IDS,
+    outcome_pixel_counts,
+    outcomes_present,
+)
 from training.chunks import load_chunks, run_chunks
 from training.config import CameraConfig, DatasetConfig, SceneConfig
 from training.geometry import quat_to_matrix

@@ -1,0 +1,161 @@
+"""Stage 6: evaluate a checkpoint with the paper's image-level metric, exactly as the node runs.
+
+Every image goes through ``OutcomeSegmenter.segment`` at full resolution (the node's code
+path), and the presence rule of labels.py decides which outcomes are present in the predicted
+and in the true label image. Writes ``eval.json`` (CONTRACTS §6), a confusion matrix and a
+picture of examples, mistakes first.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from task_outcome_ros.inference import OutcomeSegmenter
+from task_outcome_ros.labels import (
+    CLASS_NAMES,
+    IGNORE,
+    NUM_CLASSES,
+    OUTCOME_NAMES,
+    PRESENCE_MIN_PIXELS,
+    outcomes_present,
+    presence_threshold,
+)
+from training.config import save_json
+from training.dataset import load_manifest
+from training.render import read_pair
+
+
+def presence_scores(truth: np.ndarray, pred: np.ndarray) -> dict:
+    """(N, 3) boolean presence arrays -> all-correct rate and per-outcome precision/recall."""
+    out = {"image_all_correct": float(np.mean(np.all(truth == pred, axis=1))) if len(truth)
+           else 0.0}
+    for k, name in enumerate(OUTCOME_NAMES):
+        tp = int(np.sum(truth[:, k] & pred[:, k]))
+        fp = int(np.sum(~truth[:, k] & pred[:, k]))
+        fn = int(np.sum(truth[:, k] & ~pred[:, k]))
+        out[name] = {"presence_precision": tp / (tp + fp) if tp + fp else 1.0,
+                     "presence_recall": tp / (tp + fn) if tp + fn else 1.0,
+                     "support": int(truth[:, k].sum()), "false_positives": fp,
+                     "false_negatives": fn}
+    return out
+
+
+def confusion(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    keep = truth != IGNORE
+    return np.bincount(truth[keep].astype(np.int64) * NUM_CLASSES + pred[keep],
+                       minlength=NUM_CLASSES ** 2).reshape(NUM_CLASSES, NUM_CLASSES)
+
+
+def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
+             backend: str = "auto", presence_min_pixels: int = PRESENCE_MIN_PIXELS,
+             limit: int | None = None, progress: bool = True) -> dict:
+    """Evaluate on ``split`` ('val', 'train' or 'all') of the dataset in ``data_dir``."""
+    manifest = load_manifest(data_dir)
+    images = [im for im in manifest["images"] if split == "all" or im["split"] == split]
+    if limit:
+        images = images[:limit]
+    if not images:
+        raise ValueError(f"{data_dir}: no images in split {split!r}")
+    seg = OutcomeSegmenter(model_path, presence_min_pixels=presence_min_pixels, backend=backend)
+    conf = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
+    truth_p, pred_p, rows, times = [], [], [], []
+    for im in tqdm(images, desc=f"evaluate {split}", disable=not progress, unit="img"):
+        depth, labels = read_pair(data_dir, im["episode"])
+        result = seg.segment(depth)
+        times.append(result.inference_ms)
+        t = outcomes_present(labels, presence_min_pixels)
+        truth_p.append([t[n] for n in OUTCOME_NAMES])
+        pred_p.append([result.present[n] for n in OUTCOME_NAMES])
+        conf += confusion(labels, result.labels)
+        rows.append({"episode": im["episode"], "truth": t, "pred": result.present,
+                     "correct": t == result.present})
+    truth_arr, pred_arr = np.array(truth_p, bool), np.array(pred_p, bool)
+    iou = np.diag(conf) / np.maximum(1, conf.sum(0) + conf.sum(1) - np.diag(conf))
+    h, w = depth.shape
+    report = {
+        "n_images": len(images),
+        "split": split,
+        "data": str(data_dir),
+        "model": str(seg.model_path),
+        "backend": seg.backend,
+        **presence_scores(truth_arr, pred_arr),
+        "presence_recall": {n: None for n in OUTCOME_NAMES},
+        "pixel_miou": float(iou.mean()),
+        "iou": {CLASS_NAMES[c]: round(float(iou[c]), 5) for c in range(NUM_CLASSES)},
+        "presence_min_pixels": presence_min_pixels,
+        "presence_threshold_pixels": presence_threshold(h, w, presence_min_pixels),
+        "image_size": [w, h],
+        "inference_ms_p50": float(np.percentile(times, 50)),
+        "confusion": conf.tolist(),
+        "mistakes": [r["episode"] for r in rows if not r["correct"]],
+    }
+    report["presence_recall"] = {n: report[n]["presence_recall"] for n in OUTCOME_NAMES}
+    report["presence_precision"] = {n: report[n]["presence_precision"] for n in OUTCOME_NAMES}
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_json(out_dir / "eval.json", report)
+    plot_confusion(out_dir / "confusion.png", conf)
+    plot_examples(out_dir / "eval_examples.png", data_dir, rows, seg)
+    return report
+
+
+def plot_confusion(path: Path, conf: np.ndarray) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    norm = conf / np.maximum(1, conf.sum(1, keepdims=True))
+    fig, ax = plt.subplots(figsize=(6, 5), dpi=100)
+    im = ax.imshow(norm, cmap="Blues", vmin=0, vmax=1)
+    for i in range(NUM_CLASSES):
+        for j in range(NUM_CLASSES):
+            ax.text(j, i, f"{norm[i, j]:.3f}", ha="center", va="center", fontsize=8,
+                    color="white" if norm[i, j] > 0.5 else "black")
+    ax.set_xticks(range(NUM_CLASSES), CLASS_NAMES, rotation=30, ha="right")
+    ax.set_yticks(range(NUM_CLASSES), CLASS_NAMES)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("true (pixels with depth)")
+    ax.set_title("pixel confusion, row-normalised")
+    fig.colorbar(im)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_examples(path: Path, data_dir: Path, rows: list[dict], seg: OutcomeSegmenter,
+                  n: int = 6) -> None:
+    """depth | truth | prediction | disagreement for mistakes first, then correct images."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from task_outcome_ros.labels import colourise
+    from training.preview import depth_to_grey
+
+    chosen = ([r for r in rows if not r["correct"]] + [r for r in rows if r["correct"]])[:n]
+    fig, axes = plt.subplots(len(chosen), 4, figsize=(13, 2.6 * len(chosen)), dpi=75,
+                             squeeze=False)
+    for row, r in zip(axes, chosen):
+        depth, labels = read_pair(data_dir, r["episode"])
+        pred = seg.segment(depth).labels
+        wrong = (pred != labels) & (labels != IGNORE)
+        names = lambda p: ", ".join(k for k, v in p.items() if v) or "nothing"  # noqa: E731
+        row[0].imshow(depth_to_grey(depth), cmap="gray")
+        row[0].set_title(f"episode {r['episode']} " + ("OK" if r["correct"] else "MISTAKE"),
+                         fontsize=9, color="black" if r["correct"] else "red")
+        row[1].imshow(colourise(labels))
+        row[1].set_title("truth: " + names(r["truth"]), fontsize=8)
+        row[2].imshow(colourise(pred))
+        row[2].set_title("predicted: " + names(r["pred"]), fontsize=8)
+        row[3].imshow(wrong, cmap="Reds")
+        row[3].set_title(f"wrong pixels: {int(wrong.sum())}", fontsize=8)
+        for ax in row:
+            ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
