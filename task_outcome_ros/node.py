@@ -1,8 +1,9 @@
 """The rclpy edge (CONTRACTS §5): depth image in -> labels, status, overlay (and markers) out.
 
-The only module of the package that imports rclpy. It converts messages to arrays and back and
-calls ``inference.OutcomeSegmenter``; everything it knows about depth and labels comes from
-``depth.py`` and ``labels.py``.
+With replay.py, the only module of the package that imports rclpy. It converts messages to
+arrays and back and calls ``inference.OutcomeSegmenter``; what the outputs say (status fields,
+overlay) comes from ``outcome_report.py``, shared with the offline bag tool, and everything it
+knows about depth and labels from ``depth.py`` and ``labels.py``.
 
 Real time: the subscription callback only keeps the newest image (an overwritten, never
 processed one counts as dropped); one worker thread processes whatever is newest, so a slow
@@ -14,14 +15,12 @@ the node at start-up with a FATAL message naming what to fix.
 from __future__ import annotations
 
 import array
-import math
 import sys
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -39,10 +38,11 @@ from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from task_outcome_ros import labels as L
+from task_outcome_ros import outcome_report as R
 from task_outcome_ros.depth import DepthDecodeError, decode_depth
 
 NODE_NAME = "outcome_node"
-STATUS_NAME = "task_outcome"
+STATUS_NAME = R.STATUS_NAME
 QOS_CHOICES = ("sensor_data", "reliable")
 DEVICE_CHOICES = ("cpu", "cuda", "auto")
 BACKEND_CHOICES = ("auto", "torch", "onnx")
@@ -80,7 +80,8 @@ PARAMS: dict[str, _ParamSpec] = {
         True, "Publish outcome/overlay (rgb8 colourised depth with the labels blended in).",
         False, "true or false"),
     "overlay_alpha": _ParamSpec(
-        0.5, "Weight of the label colours in outcome/overlay, 0 (depth only) to 1 (labels only).",
+        R.DEFAULT_OVERLAY_ALPHA,
+        "Weight of the label colours in outcome/overlay, 0 (depth only) to 1 (labels only).",
         False, "a floating-point number in [0.0, 1.0], e.g. 0.5"),
     "publish_markers": _ParamSpec(
         True, "Publish outcome/markers: a sphere at each failure object's 3-D centroid "
@@ -106,75 +107,6 @@ def subscription_qos(name: str) -> QoSProfile:
 
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                         reliability=ReliabilityPolicy.RELIABLE)
-
-
-# --- pure helpers (numpy in, numpy/str out) -------------------------------------------------
-
-def colourise_depth(depth_m: np.ndarray) -> np.ndarray:
-    """float metres (NaN invalid) -> RGB uint8; near warm, far cool, invalid grey."""
-    valid = np.isfinite(depth_m)
-    rgb = np.empty(depth_m.shape + (3,), np.uint8)
-    rgb[:] = L.CLASS_COLOURS[L.IGNORE]
-    if valid.any():
-        # Robust range from a subsample: a full-image percentile costs ~10 ms at 640 x 480.
-        step = max(1, int(math.sqrt(depth_m.size / 20_000)))
-        sample = depth_m[::step, ::step]
-        sample = sample[np.isfinite(sample)]
-        lo, hi = np.percentile(sample, (1, 99)) if sample.size else np.nanpercentile(
-            depth_m, (1, 99))
-        scale = 255.0 / max(float(hi - lo), 1e-6)
-        grey = cv2.convertScaleAbs(np.where(valid, depth_m, lo), alpha=-scale,
-                                   beta=255.0 + lo * scale)  # near -> 255, far -> 0, saturated
-        turbo = cv2.cvtColor(cv2.applyColorMap(grey, cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
-        np.copyto(rgb, turbo, where=valid[..., None])
-    return rgb
-
-
-def render_overlay(depth_m: np.ndarray, labels: np.ndarray, alpha: float) -> np.ndarray:
-    """Colourised depth with every non-background label blended in at ``alpha``."""
-    out = colourise_depth(depth_m)
-    mask = labels != L.BACKGROUND
-    if alpha > 0 and mask.any():
-        blend = cv2.addWeighted(L.colourise(labels), alpha, out, 1.0 - alpha, 0.0)
-        np.copyto(out, blend, where=mask[..., None])
-    return out
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics of the raw image (CameraInfo.K) for one image size."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    @classmethod
-    def from_camera_info(cls, msg: CameraInfo) -> Intrinsics:
-        k = [float(v) for v in msg.k]
-        if not all(math.isfinite(v) for v in k) or k[0] <= 0 or k[4] <= 0:
-            raise ValueError(f"camera_info K has no valid focal length (fx={k[0]}, fy={k[4]})")
-        if msg.width <= 0 or msg.height <= 0:
-            raise ValueError(f"camera_info has size {msg.width} x {msg.height}")
-        return cls(int(msg.width), int(msg.height), k[0], k[4], k[2], k[5])
-
-    def back_project(self, u: float, v: float, z: float) -> tuple[float, float, float]:
-        """Pixel (u, v) at depth z (m, along the optical axis) -> optical-frame x, y, z."""
-        return (u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z
-
-
-def status_level(present: dict[str, bool]) -> bytes:
-    """OK when only success (or nothing) is present, WARN when a failure mode is."""
-    if any(present.get(name, False) for name in L.FAILURE_OUTCOMES):
-        return DiagnosticStatus.WARN
-    return DiagnosticStatus.OK
-
-
-def present_message(present: dict[str, bool]) -> str:
-    names = sorted(name for name, is_present in present.items() if is_present)
-    return ",".join(names) if names else "none"
 
 
 # --- the node ---------------------------------------------------------------------------------
@@ -327,61 +259,30 @@ class OutcomeNode(Node):
         intrinsics, camera_note = None, None
         if camera_info is not None:
             try:
-                cand = Intrinsics.from_camera_info(camera_info)
-                if (cand.width, cand.height) != (width, height):
-                    raise ValueError(f"camera_info size {cand.width} x {cand.height} does not "
-                                     f"match the image {width} x {height}")
-                intrinsics = cand
+                intrinsics = R.intrinsics_for_image(camera_info.width, camera_info.height,
+                                                    camera_info.k, width, height)
             except ValueError as exc:
                 camera_note = f"ignored for 3-D positions: {exc}"
                 self.get_logger().warning(f"camera_info {camera_note}",
                                           throttle_duration_sec=WARN_THROTTLE_S)
 
-        values, centroids = self._result_values(res, intrinsics)
-        if camera_note:
-            values.append(KeyValue(key="camera_info", value=camera_note))
-        values += _timing_values(res.inference_ms, dropped, t_received)
-        self._publish_status(header, status_level(res.present), present_message(res.present),
-                             values)
+        fields = R.status_fields(res, intrinsics, camera_note=camera_note, dropped=dropped,
+                                 latency_ms=_latency_ms(t_received))
+        self._publish_status(header, fields)
 
         if self._params["publish_overlay"]:
-            rgb = render_overlay(depth, labels, float(self._params["overlay_alpha"]))
+            rgb = R.overlay_rgb(depth, labels, float(self._params["overlay_alpha"]))
             self._pub_overlay.publish(_image_msg(header, rgb, "rgb8"))
         if self._params["publish_markers"]:
-            self._pub_markers.publish(_markers(header, centroids))
-
-    def _result_values(self, res: Any, intrinsics: Intrinsics | None,
-                       ) -> tuple[list[KeyValue], list[tuple[str, int, tuple[float, ...]]]]:
-        values: list[KeyValue] = []
-        centroids: list[tuple[str, int, tuple[float, ...]]] = []
-        for name in L.OUTCOME_NAMES:
-            objects = res.objects.get(name, [])
-            values += [KeyValue(key=f"{name}.present", value=str(bool(res.present[name])).lower()),
-                       KeyValue(key=f"{name}.pixels", value=str(int(res.pixel_counts[name]))),
-                       KeyValue(key=f"{name}.objects", value=str(len(objects)))]
-            if name not in L.FAILURE_OUTCOMES:
-                continue
-            for k, obj in enumerate(objects):
-                u, v = (float(c) for c in obj.centroid_px)
-                values.append(KeyValue(key=f"{name}.{k}.centroid_px", value=f"{u:.1f},{v:.1f}"))
-                z = obj.median_depth_m
-                if intrinsics is not None and z is not None and math.isfinite(z) and z > 0:
-                    xyz = intrinsics.back_project(u, v, float(z))
-                    values.append(KeyValue(key=f"{name}.{k}.centroid_m",
-                                           value=",".join(f"{c:.3f}" for c in xyz)))
-                    centroids.append((name, k, xyz))
-        return values, centroids
+            self._pub_markers.publish(_markers(header, R.object_centroids(res, intrinsics)))
 
     # publishing ------------------------------------------------------------------------------
-    def _publish_status(self, header: Header, level: bytes, message: str,
-                        values: list[KeyValue]) -> None:
-        status = DiagnosticStatus(level=level, name=STATUS_NAME, message=message,
-                                  hardware_id=header.frame_id, values=values)
-        self._pub_status.publish(DiagnosticArray(header=header, status=[status]))
+    def _publish_status(self, header: Header, fields: R.StatusFields) -> None:
+        self._pub_status.publish(status_array(header, fields))
 
     def _publish_error(self, header: Header, why: str, dropped: int, t_received: float) -> None:
-        self._publish_status(header, DiagnosticStatus.ERROR, why,
-                             _timing_values(None, dropped, t_received))
+        self._publish_status(header, R.error_fields(why, dropped=dropped,
+                                                    latency_ms=_latency_ms(t_received)))
 
     def destroy_node(self) -> None:
         with self._lock:
@@ -390,6 +291,14 @@ class OutcomeNode(Node):
         if self._worker.is_alive():
             self._worker.join(timeout=5.0)
         super().destroy_node()
+
+
+def status_array(header: Header, fields: R.StatusFields) -> DiagnosticArray:
+    """outcome_report.StatusFields -> the DiagnosticArray of outcome/status."""
+    status = DiagnosticStatus(level=bytes([fields.level]), name=STATUS_NAME,
+                              message=fields.message, hardware_id=header.frame_id,
+                              values=[KeyValue(key=k, value=v) for k, v in fields.values])
+    return DiagnosticArray(header=header, status=[status])
 
 
 def _image_msg(header: Header, pixels: np.ndarray, encoding: str) -> Image:
@@ -402,18 +311,12 @@ def _image_msg(header: Header, pixels: np.ndarray, encoding: str) -> Image:
                  is_bigendian=0, step=width * channels, data=data)
 
 
-def _timing_values(inference_ms: float | None, dropped: int, t_received: float,
-                   ) -> list[KeyValue]:
-    values = [] if inference_ms is None else [
-        KeyValue(key="inference_ms", value=f"{float(inference_ms):.2f}")]
-    # latency_ms: arrival at the node -> status published (queueing + decode + inference).
-    latency_ms = (time.monotonic() - t_received) * 1e3
-    return values + [KeyValue(key="dropped_frames", value=str(dropped)),
-                     KeyValue(key="latency_ms", value=f"{latency_ms:.2f}")]
+def _latency_ms(t_received: float) -> float:
+    """Arrival at the node -> now (queueing + decode + inference)."""
+    return (time.monotonic() - t_received) * 1e3
 
 
-def _markers(header: Header, centroids: list[tuple[str, int, tuple[float, ...]]],
-             ) -> MarkerArray:
+def _markers(header: Header, centroids: list[R.Centroid]) -> MarkerArray:
     """DELETEALL (clears the previous frame's spheres) then one sphere per 3-D centroid."""
     markers = [Marker(header=header, action=Marker.DELETEALL)]
     for name, k, (x, y, z) in centroids:

@@ -1,7 +1,8 @@
 """``python -m training <stage>``: the offline pipeline, one sub-command per stage.
 
 simulate -> discover -> render (+ manifest, previews) -> train -> evaluate; ``dataset`` runs
-the first three, ``run`` runs everything. Each stage reads the previous stage's files in the
+the first three, ``run`` runs everything; ``export-bag`` writes a run's images as a rosbag2 bag
+for the ROS side (outcome_bag, outcome_replay). Each stage reads the previous stage's files in the
 run folder (``--out``) and writes its own; re-running a stage resumes it.
 """
 
@@ -203,6 +204,12 @@ def add_eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--eval-out", type=Path, default=None, help="where eval.json goes")
 
 
+def cmd_export_bag(args) -> None:
+    from training.export_bag import cmd_export_bag
+
+    cmd_export_bag(args)
+
+
 def cmd_run(args) -> None:
     """Everything: dataset, train (and ship), evaluate on the validation split."""
     cmd_dataset(args)
@@ -218,6 +225,7 @@ COMMANDS = {
     "train": (cmd_train, "train the FCN on the run's dataset"),
     "evaluate": (cmd_evaluate, "evaluate a checkpoint with the paper's image-level metric"),
     "run": (cmd_run, "dataset + train + evaluate"),
+    "export-bag": (cmd_export_bag, "write a run's images as a rosbag2 bag (+ ground truth)"),
 }
 
 
@@ -227,6 +235,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="stage", required=True, metavar="stage")
     for name, (_, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text)
+        if name == "export-bag":
+            from training.export_bag import add_args
+
+            add_args(p)
+            continue
         add_dataset_args(p)
         if name in ("train", "run"):
             add_train_args(p)

@@ -1,0 +1,50 @@
+# A newcomer's entry points. Everything installs into .venv from the package registry.
+#   make demo   set up, then run the main job on an embedded default
+#   make test   set up, then run the test suite (what CI runs)
+PYTHON ?= python3.11
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: setup demo test test-all train ship bench lint clean
+
+setup: $(STAMP)
+
+$(STAMP): requirements.txt setup.py setup.cfg package.xml
+	@command -v $(PYTHON) >/dev/null || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3.12 ...'"; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -r requirements.txt
+	$(PY) -m pip install --quiet --no-deps -e .
+	touch $(STAMP)
+
+# The whole story on a small simulated bag: generate, start outcome_node, replay over DDS,
+# record, score against ground truth, write a contact sheet and a summary.
+demo: $(STAMP)
+	$(PY) -m task_outcome_ros.demo --out runs/demo
+
+# Fast suite (CI): unit tests, the real node over DDS, a small end-to-end pipeline run.
+test: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+# Everything, including the heavy tests.
+test-all: $(STAMP)
+	$(PY) -m pytest -q
+
+# Quick retraining profile (~20 min on 2 cores): 3,000 episodes, short schedule.
+train: $(STAMP)
+	$(PY) -m training run --out runs/quick --episodes 3000 --epochs 6 --max-minutes 16
+
+# The shipped model: default 10,000-episode dataset, full schedule, installed into the package.
+ship: $(STAMP)
+	$(PY) -m training run --out runs/default --ship
+
+bench: $(STAMP)
+	$(PY) bench/inference.py
+	$(PY) bench/node.py
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf build install log .pytest_cache

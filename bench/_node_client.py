@@ -1,0 +1,226 @@
+"""Client side of bench/node.py: one process per scenario (Fast DDS reads its XML profile once
+per process, so the SHM / no-SHM runs need fresh processes). Feeds depth/image_raw, listens to
+outcome/labels and outcome/status, samples the node's RSS and CPU, writes a JSON summary.
+
+Not meant to be run by hand; bench/node.py starts it with the scenario's environment.
+"""
+
+from __future__ import annotations
+
+import argparse
+import array
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from inference import load_frames, percentiles  # noqa: E402
+
+LATENCY_SEC, THROUGHPUT_SEC, PRIME_SEC = 1, 2, 3  # header.stamp.sec tags the phase
+
+
+def proc_status(pid: int) -> dict[str, int]:
+    """VmRSS / VmHWM (kB) of ``pid``."""
+    out = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, rest = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            out[key] = int(rest.split()[0])
+    return out
+
+
+def proc_cpu_s(pid: int) -> float:
+    """user + system CPU seconds of ``pid``."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("--node-pid", type=int, required=True)
+    p.add_argument("--qos", choices=("sensor_data", "reliable"), required=True)
+    p.add_argument("--latency-frames", type=int, default=0)
+    p.add_argument("--latency-hz", type=float, default=10.0)
+    p.add_argument("--seconds", type=float, default=60.0)
+    p.add_argument("--hz", type=float, default=30.0)
+    p.add_argument("--images", type=int, default=30)
+    p.add_argument("--out", type=Path, required=True)
+    args = p.parse_args()
+
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    frames, _, frames_desc = load_frames(args.images)
+    msgs = []
+    for depth in frames:
+        h, w = depth.shape
+        msgs.append(Image(height=h, width=w, encoding="32FC1", is_bigendian=0, step=w * 4,
+                          data=array.array("B", np.ascontiguousarray(depth, "<f4").tobytes())))
+        msgs[-1].header.frame_id = "depth_optical"
+
+    rclpy.init()
+    node = rclpy.create_node("outcome_bench_client")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    pub_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
+                         reliability=ReliabilityPolicy.BEST_EFFORT if args.qos == "sensor_data"
+                         else ReliabilityPolicy.RELIABLE)
+    sub_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                         reliability=ReliabilityPolicy.RELIABLE)
+    pub = node.create_publisher(Image, "depth/image_raw", pub_qos)
+    labels_at: dict[tuple[int, int], float] = {}
+    status_of: dict[tuple[int, int], dict[str, str]] = {}
+    last_status: dict[str, str] = {}
+
+    def on_labels(msg: Image) -> None:
+        labels_at.setdefault((msg.header.stamp.sec, msg.header.stamp.nanosec), time.monotonic())
+
+    def on_status(msg: DiagnosticArray) -> None:
+        values = {kv.key: kv.value for s in msg.status for kv in s.values}
+        status_of[msg.header.stamp.sec, msg.header.stamp.nanosec] = values
+        last_status.clear()
+        last_status.update(values)
+
+    subs = [node.create_subscription(Image, "outcome/labels", on_labels, sub_qos),
+            node.create_subscription(DiagnosticArray, "outcome/status", on_status, sub_qos)]
+
+    def spin_until(cond, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while not cond():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            executor.spin_once(timeout_sec=min(left, 0.05))
+        return True
+
+    def publish(sec: int, index: int) -> float:
+        msg = msgs[index % len(msgs)]
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, index
+        t = time.monotonic()
+        pub.publish(msg)
+        return t
+
+    result: dict = {"qos": args.qos, "frames": frames_desc,
+                    "shm_profile": os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE", "")}
+    try:
+        t0 = time.monotonic()
+        if not spin_until(lambda: pub.get_subscription_count() >= 1
+                          and all(s.get_publisher_count() >= 1 for s in subs), 90.0):
+            raise TimeoutError("outcome_node not discovered within 90 s")
+        result["discovery_s"] = round(time.monotonic() - t0, 2)
+        # Prime: first frames after discovery may be lost on best effort; wait for answers.
+        for i in range(20):
+            publish(PRIME_SEC, i)
+            if spin_until(lambda i=i: (PRIME_SEC, i) in labels_at, 3.0):
+                break
+        else:
+            raise TimeoutError("no labels for 20 priming frames")
+        result["rss_kb_ready"] = proc_status(args.node_pid)
+
+        if args.latency_frames:
+            lat, node_lat, infer, lost = [], [], [], 0
+            period = 1.0 / args.latency_hz
+            for i in range(args.latency_frames):
+                tp = publish(LATENCY_SEC, i)
+                key = (LATENCY_SEC, i)
+                if spin_until(lambda key=key: key in labels_at and key in status_of, 2.0):
+                    lat.append((labels_at[key] - tp) * 1e3)
+                    node_lat.append(float(status_of[key]["latency_ms"]))
+                    infer.append(float(status_of[key].get("inference_ms", "nan")))
+                else:
+                    lost += 1
+                spin_until(lambda tp=tp: time.monotonic() >= tp + period, period)
+            result["latency"] = {
+                "frames": args.latency_frames, "rate_hz": args.latency_hz, "unanswered": lost,
+                "end_to_end_ms": percentiles(lat) if lat else None,
+                "node_latency_ms": percentiles(node_lat) if node_lat else None,
+                "node_inference_ms": percentiles(infer) if infer else None,
+                "note": "end_to_end = client publish -> labels received (same clock); "
+                        "node_latency = arrival at the node -> status published"}
+            spin_until(lambda: False, 0.5)
+
+        if args.seconds > 0:
+            dropped_start = int(last_status.get("dropped_frames", 0))
+            n = int(round(args.seconds * args.hz))
+            period = 1.0 / args.hz
+            pub_t = np.zeros(n)
+            rss = [(0.0, proc_status(args.node_pid)["VmRSS"])]
+            cpu0, start = proc_cpu_s(args.node_pid), time.monotonic()
+            next_t, next_rss, late = start, start + 2.0, 0
+            i = 0
+            while i < n:
+                now = time.monotonic()
+                if now >= next_t:
+                    pub_t[i] = publish(THROUGHPUT_SEC, i)
+                    i += 1
+                    next_t += period
+                    if next_t < now - period:  # fell behind by > 1 frame: don't burst
+                        late += 1
+                        next_t = now + period
+                else:
+                    executor.spin_once(timeout_sec=next_t - now)
+                if now >= next_rss:
+                    rss.append((round(now - start, 1), proc_status(args.node_pid)["VmRSS"]))
+                    next_rss += 2.0
+            feed_s = time.monotonic() - start
+            cpu_s = proc_cpu_s(args.node_pid) - cpu0
+            spin_until(lambda: (THROUGHPUT_SEC, n - 1) in status_of, 3.0)  # drain
+            spin_until(lambda: False, 0.5)
+            end_status = proc_status(args.node_pid)
+            rss.append((round(time.monotonic() - start, 1), end_status["VmRSS"]))
+            answered = sorted((k[1], t) for k, t in labels_at.items() if k[0] == THROUGHPUT_SEC)
+            idx = np.array([a for a, _ in answered], int)
+            recv = np.array([t for _, t in answered])
+            lag = (recv - pub_t[idx]) * 1e3 if idx.size else np.array([])
+            # backlog: frames published after frame i but before its answer arrived
+            backlog = (np.searchsorted(pub_t, recv, side="right") - 1 - idx) if idx.size \
+                else np.array([0])
+            dropped = int(last_status.get("dropped_frames", 0)) - dropped_start
+            node_lat = [float(v["latency_ms"]) for k, v in status_of.items()
+                        if k[0] == THROUGHPUT_SEC and "latency_ms" in v]
+            infer = [float(v["inference_ms"]) for k, v in status_of.items()
+                     if k[0] == THROUGHPUT_SEC and "inference_ms" in v]
+            errors = sum(1 for k, v in status_of.items()
+                         if k[0] == THROUGHPUT_SEC and "inference_ms" not in v)
+            result["throughput"] = {
+                "target_hz": args.hz, "seconds": args.seconds, "published": n,
+                "achieved_publish_hz": round(n / feed_s, 2), "late_ticks": late,
+                "labels_received": int(idx.size),
+                "fraction_answered": round(idx.size / n, 4),
+                "answered_hz": round(idx.size / feed_s, 2),
+                "dropped_frames_node": dropped,
+                "dropped_frames_node_total": int(last_status.get("dropped_frames", 0)),
+                "lost_before_node": max(0, n - int(idx.size) - dropped),
+                "error_status": errors,
+                "lag_ms": percentiles(lag.tolist()) | {"max": round(float(lag.max()), 1)}
+                if lag.size else None,
+                "backlog_frames": {"max": int(backlog.max()),
+                                   "p50": float(np.percentile(backlog, 50))},
+                "node_latency_ms": percentiles(node_lat) if node_lat else None,
+                "node_inference_ms": percentiles(infer) if infer else None,
+                "node_cpu_percent": round(100 * cpu_s / feed_s, 1),
+                "node_rss_kb": {"start": rss[0][1], "end": rss[-1][1],
+                                "max": max(r for _, r in rss), "peak_VmHWM": end_status["VmHWM"],
+                                "samples_t_s_kb": rss},
+                "note": "lost_before_node = published - answered - node dropped_frames (lost "
+                        "in transport or still queued); lag = publish -> labels received; "
+                        "backlog = frames published between a frame and its answer"}
+        result["ok"] = True
+    except Exception as exc:
+        result["ok"], result["error"] = False, f"{type(exc).__name__}: {exc}"
+    finally:
+        args.out.write_text(json.dumps(result, indent=1))
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,299 @@
+"""Benchmark ``OutcomeSegmenter.segment`` on 640 x 480 depth: torch vs ONNX, 1 vs 2 threads.
+
+    python bench/inference.py                 # 300 timed frames per configuration (~1-2 min)
+    python bench/inference.py --frames 500
+    python bench/inference.py --quick         # a smoke run (~20 s)
+
+The four configurations (backend torch/onnx x threads 1/2) run interleaved in short blocks, in
+a rotating order, so a change in machine load hits them all alike; ``paired_ratio`` compares
+neighbouring blocks only. Each timed frame is one ``segment()`` call (the node's code path);
+a staged replica of it on the same frame gives the breakdown (preprocess / network / post).
+A random-init model labels everything background, so its post stage (resize back, presence,
+connected components) is also timed on the dataset's ground-truth labels, which is what a
+trained model would produce.
+
+Writes the ``inference`` section of bench/results.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import record  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+RUN_DIR = REPO / "runs" / "default"
+SIZE = (640, 480)  # (W, H)
+
+
+# ---- shared with bench/node.py -------------------------------------------------------------
+
+def prepare_model(tmp: Path) -> tuple[Path, str]:
+    """(checkpoint path with a matching .onnx beside it, description of where it came from).
+
+    The shipped checkpoint when there is one (copied to ``tmp`` and exported there if its ONNX
+    file is missing or stale; the package folder is never written), else a random-init
+    checkpoint of the default architecture: same compute cost, meaningless labels.
+    """
+    from task_outcome_ros.checkpoint import file_sha256
+    from task_outcome_ros.inference import default_model_path
+    from task_outcome_ros.onnx_export import (
+        META_SOURCE_SHA256,
+        export_onnx,
+        onnx_path_for,
+        read_metadata,
+    )
+
+    shipped = default_model_path()
+    if shipped.is_file():
+        onnx = onnx_path_for(shipped)
+        try:
+            fresh = read_metadata(onnx).get(META_SOURCE_SHA256) == file_sha256(shipped)
+        except Exception:  # missing or unreadable ONNX file
+            fresh = False
+        if fresh:
+            return shipped, f"shipped {shipped} (+ its ONNX export)"
+        path = tmp / shipped.name
+        shutil.copyfile(shipped, path)
+        export_onnx(path)
+        return path, f"shipped {shipped} (ONNX exported to a temp dir)"
+
+    import torch
+
+    from task_outcome_ros import checkpoint, model
+
+    torch.manual_seed(0)
+    net = model.build_model(dict(model.DEFAULT_MODEL_ARGS))
+    path = checkpoint.save(tmp / "outcome_fcn.pt", net, model_args=dict(model.DEFAULT_MODEL_ARGS),
+                           input_size=model.DEFAULT_INPUT_SIZE,
+                           normalisation=dict(model.DEFAULT_NORMALISATION),
+                           train_config={}, metrics={})
+    export_onnx(path)
+    return path, ("random-init checkpoint, default architecture (no shipped model at "
+                  f"{shipped}); same compute cost, labels meaningless")
+
+
+def synth_frame(rng: np.random.Generator) -> np.ndarray:
+    """A tilted floor plane at ~2 m with a few boxes and invalid (NaN) speckle, 640 x 480."""
+    w, h = SIZE
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    depth = 2.0 + 0.3 * (v / h - 0.5) + 0.05 * (u / w - 0.5)
+    for _ in range(rng.integers(2, 6)):
+        bw, bh = rng.integers(30, 160, 2)
+        x, y = rng.integers(0, w - bw), rng.integers(0, h - bh)
+        depth[y:y + bh, x:x + bw] -= rng.uniform(0.05, 0.4)
+    depth += rng.normal(0, 0.003, depth.shape).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.02] = np.nan
+    return depth.astype(np.float32)
+
+
+def load_frames(n: int) -> tuple[list[np.ndarray], list[np.ndarray | None], str]:
+    """``n`` 640 x 480 float32 depth frames (+ true labels when from the dataset run)."""
+    if (RUN_DIR / "manifest.json").is_file():
+        import json
+
+        from training.render import read_pair
+
+        total = int(json.loads((RUN_DIR / "manifest.json").read_text())["n_images"])
+        depths, labels = [], []
+        for index in np.linspace(0, total - 1, n).astype(int):
+            try:
+                d, lab = read_pair(RUN_DIR, int(index))
+            except (ValueError, OSError):
+                continue
+            if d.shape == (SIZE[1], SIZE[0]):
+                depths.append(d.astype(np.float32))
+                labels.append(lab)
+        if len(depths) >= max(1, n // 2):
+            return depths, labels, f"{len(depths)} images of {RUN_DIR} (training.render.read_pair)"
+    rng = np.random.default_rng(0)
+    return ([synth_frame(rng) for _ in range(n)], [None] * n,
+            f"{n} synthetic frames (plane + boxes + 2 % NaN)")
+
+
+def percentiles(values: list[float]) -> dict:
+    a = np.asarray(values, float)
+    return {"n": int(a.size), "p50": round(float(np.percentile(a, 50)), 2),
+            "p95": round(float(np.percentile(a, 95)), 2), "mean": round(float(a.mean()), 2),
+            "min": round(float(a.min()), 2)}
+
+
+def load_average() -> list[float]:
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+# ---- the benchmark ---------------------------------------------------------------------------
+
+def post_stage(seg, small: np.ndarray, depth: np.ndarray) -> None:
+    """What ``segment`` does after the network: resize back, presence, components."""
+    import cv2
+
+    from task_outcome_ros.inference import count_objects
+    from task_outcome_ros.labels import (
+        OUTCOME_IDS,
+        OUTCOME_NAMES,
+        outcome_pixel_counts,
+        outcomes_present,
+        presence_threshold,
+    )
+
+    h, w = depth.shape
+    labels = small if small.shape == (h, w) else cv2.resize(
+        small, (w, h), interpolation=cv2.INTER_NEAREST)
+    threshold = presence_threshold(h, w, seg.presence_min_pixels)
+    outcome_pixel_counts(labels)
+    present = outcomes_present(labels, seg.presence_min_pixels)
+    for name in OUTCOME_NAMES:
+        if present[name]:
+            count_objects(labels, OUTCOME_IDS[name], threshold, depth)
+
+
+def staged(seg, frame: np.ndarray) -> tuple[float, float, float]:
+    """segment() split in three timed stages (ms): preprocess, network (+argmax), post."""
+    from task_outcome_ros.depth import sanitize_depth
+    from task_outcome_ros.model import preprocess_sanitized
+
+    t0 = time.perf_counter()
+    depth = sanitize_depth(frame)
+    x = preprocess_sanitized(depth, seg.input_size, seg.normalisation)
+    t1 = time.perf_counter()
+    small = seg._predict_small(x)
+    t2 = time.perf_counter()
+    post_stage(seg, small, depth)
+    t3 = time.perf_counter()
+    return (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=300,
+                        help="timed segment() frames per configuration (default 300)")
+    parser.add_argument("--block", type=int, default=10, help="frames per interleaved block")
+    parser.add_argument("--warmup", type=int, default=20, help="untimed frames per configuration")
+    parser.add_argument("--images", type=int, default=50, help="distinct frames to cycle through")
+    parser.add_argument("--threads", default="1,2", help="comma-separated thread counts")
+    parser.add_argument("--quick", action="store_true", help="smoke run: 60 frames, 20 images")
+    args = parser.parse_args()
+    if args.quick:
+        args.frames, args.images, args.warmup = min(args.frames, 60), min(args.images, 20), 5
+    command = "python bench/inference.py " + " ".join(sys.argv[1:])
+
+    import cv2
+    import onnxruntime
+    import torch
+
+    from task_outcome_ros.inference import OutcomeSegmenter
+
+    threads = [int(t) for t in args.threads.split(",")]
+    load_start = load_average()
+    frames, true_labels, frames_desc = load_frames(args.images)
+    with tempfile.TemporaryDirectory(prefix="bench_inference_") as tmp:
+        model_path, model_desc = prepare_model(Path(tmp))
+        configs = [(b, t) for t in threads for b in ("torch", "onnx")]
+        segs = {}
+        for backend, n in configs:
+            segs[backend, n] = OutcomeSegmenter(model_path, backend=backend, num_threads=n)
+            assert segs[backend, n].backend == backend, segs[backend, n].backend_reason
+
+        def use(backend: str, n: int):
+            torch.set_num_threads(n)  # torch's pool is global; set before every block
+            cv2.setNumThreads(n)
+            return segs[backend, n]
+
+        for backend, n in configs:
+            seg = use(backend, n)
+            for i in range(args.warmup):
+                seg.segment(frames[i % len(frames)])
+                staged(seg, frames[i % len(frames)])
+
+        total = {c: [] for c in configs}
+        stages = {c: ([], [], []) for c in configs}
+        block_means = {c: [] for c in configs}
+        cpu = {c: [] for c in configs}  # process CPU time (all threads) per segment()
+        rounds = -(-args.frames // args.block)
+        start = time.perf_counter()
+        k = 0
+        for r in range(rounds):
+            order = configs[r % len(configs):] + configs[:r % len(configs)]  # rotate
+            for cfg in order:
+                seg = use(*cfg)
+                block = []
+                for _ in range(args.block):
+                    frame = frames[k % len(frames)]
+                    k += 1
+                    c0, t0 = time.process_time(), time.perf_counter()
+                    seg.segment(frame)
+                    block.append((time.perf_counter() - t0) * 1e3)
+                    cpu[cfg].append((time.process_time() - c0) * 1e3)
+                    for dst, v in zip(stages[cfg], staged(seg, frame), strict=True):
+                        dst.append(v)
+                total[cfg] += block
+                block_means[cfg].append(float(np.mean(block)))
+        wall = time.perf_counter() - start
+
+        # Post stage on the true labels (what a trained model's output costs to summarise).
+        post_true = None
+        if all(lab is not None for lab in true_labels):
+            seg = use("onnx", threads[0])
+            times = []
+            for i in range(min(len(frames), 50) * 2):
+                depth, lab = frames[i % len(frames)], true_labels[i % len(frames)]
+                t0 = time.perf_counter()
+                post_stage(seg, lab, depth)
+                times.append((time.perf_counter() - t0) * 1e3)
+            post_true = percentiles(times)
+
+    results = {}
+    for backend, n in configs:
+        pre, net, post = stages[backend, n]
+        results[f"{backend}_threads{n}"] = {
+            "backend": backend, "threads": n,
+            "segment_ms": percentiles(total[backend, n]),
+            "segment_cpu_ms": percentiles(cpu[backend, n]),
+            "breakdown_ms": {"preprocess": percentiles(pre), "network": percentiles(net),
+                             "post": percentiles(post)}}
+    ratios = {}
+    for n in threads:
+        t, o = results[f"torch_threads{n}"], results[f"onnx_threads{n}"]
+        ratios[f"threads{n}"] = {
+            "torch_over_onnx_p50": round(t["segment_ms"]["p50"] / o["segment_ms"]["p50"], 2),
+            "torch_over_onnx_network_p50": round(
+                t["breakdown_ms"]["network"]["p50"] / o["breakdown_ms"]["network"]["p50"], 2),
+            # median over rounds of (torch block mean / onnx block mean), adjacent in time
+            "paired_ratio": round(float(np.median(np.divide(block_means["torch", n],
+                                                            block_means["onnx", n]))), 2)}
+    if len(threads) > 1:
+        for b in ("torch", "onnx"):
+            a, z = results[f"{b}_threads{threads[0]}"], results[f"{b}_threads{threads[-1]}"]
+            ratios[f"{b}_threads{threads[0]}_over_threads{threads[-1]}_p50"] = round(
+                a["segment_ms"]["p50"] / z["segment_ms"]["p50"], 2)
+    record("inference", {
+        "model": model_desc, "frames": frames_desc, "frame_size": list(SIZE),
+        "timed_frames_per_config": len(total[configs[0]]), "block": args.block,
+        "warmup_per_config": args.warmup, "quick": args.quick, "wall_s": round(wall, 1),
+        "load_average_1_5_15": {"start": load_start, "end": load_average()},
+        "versions": {"torch": torch.__version__, "onnxruntime": onnxruntime.__version__,
+                     "opencv": cv2.__version__, "numpy": np.__version__},
+        "configs": results, "ratios": ratios,
+        "post_on_true_labels_ms": post_true,
+        "note": ("segment_ms = one OutcomeSegmenter.segment() call on a 640x480 float32 frame; "
+                 "segment_cpu_ms = process CPU time of that call, all threads (ORT worker "
+                 "threads spin-wait, so it can exceed the wall time x 1); "
+                 "breakdown from a staged replica on the same frame (network includes argmax); "
+                 "configurations interleaved in rotating blocks; machine shared with a "
+                 "training job, so absolute figures are noisy, ratios within the run less so"),
+    }, command)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,188 @@
+"""Benchmark the real outcome_node over DDS: end-to-end latency, 30 Hz throughput, memory.
+
+    python bench/node.py                  # 4 scenarios, 60 s of 30 Hz each (~5-6 min)
+    python bench/node.py --seconds 120
+    python bench/node.py --quick          # a smoke run (~1.5 min)
+
+Per scenario the node runs as its own process (the ``outcome_node`` console script, default
+parameters except model_path and qos) and a client process (bench/_node_client.py) publishes
+640 x 480 32FC1 frames on depth/image_raw and subscribes outcome/labels and outcome/status.
+Scenarios: input QoS best effort (node qos:=sensor_data, publisher best effort depth 5) or
+reliable (qos:=reliable, publisher reliable depth 5), each with and without the Fast DDS SHM
+profile (config/fastdds_shm.xml via FASTRTPS_DEFAULT_PROFILES_FILE, for both processes).
+
+* latency (best-effort scenarios): one frame at a time at 10 Hz, publish -> labels received;
+* throughput: 30 Hz for ``--seconds``: fraction answered, node dropped_frames (newest-frame
+  policy), frames lost before the node, answer lag and backlog, node CPU and RSS over time.
+
+Every scenario gets its own random ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+Writes the ``node`` section of bench/results.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import record  # noqa: E402
+from inference import load_average, prepare_model  # noqa: E402
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+SHM_PROFILE = REPO / "config" / "fastdds_shm.xml"
+PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+
+
+def node_command() -> list[str]:
+    script = Path(sys.prefix) / "bin" / "outcome_node"
+    if script.is_file():
+        return [str(script)]
+    found = shutil.which("outcome_node")
+    return [found] if found else [sys.executable, "-m", "task_outcome_ros.node"]
+
+
+def scenario_env(domain_id: int, shm: bool) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in PROFILE_VARS}
+    env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1", RCUTILS_COLORIZED_OUTPUT="0")
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    if shm:
+        env.update(dict.fromkeys(PROFILE_VARS, str(SHM_PROFILE)))
+    return env
+
+
+def stop(proc: subprocess.Popen | None, timeout: float = 10.0) -> None:
+    """SIGINT, then SIGKILL if it does not exit; only this process, by its id."""
+    if proc is None or proc.poll() is not None:
+        return
+    try:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout)
+
+
+def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds: float,
+                 images: int, tmp: Path, timeout: float) -> dict:
+    name = f"{'shm' if shm else 'noshm'}_{qos}"
+    domain_id = random.randint(1, 200)
+    env = scenario_env(domain_id, shm)
+    log_path, out = tmp / f"{name}.node.log", tmp / f"{name}.json"
+    node = client = None
+    start = time.monotonic()
+    try:
+        with open(log_path, "w") as log:
+            node = subprocess.Popen(
+                node_command() + ["--ros-args", "-p", f"model_path:={model}", "-p", f"qos:={qos}"],
+                env=env, stdout=log, stderr=subprocess.STDOUT)
+            client = subprocess.Popen(
+                [sys.executable, str(BENCH / "_node_client.py"), "--node-pid", str(node.pid),
+                 "--qos", qos, "--latency-frames", str(latency_frames), "--seconds",
+                 str(seconds), "--images", str(images), "--out", str(out)], env=env)
+            try:
+                client.wait(timeout)
+            except subprocess.TimeoutExpired:
+                stop(client)
+                raise
+            node_alive = node.poll() is None
+    finally:
+        stop(client)
+        stop(node)
+    log_text = log_path.read_text()
+    result = json.loads(out.read_text()) if out.exists() else {"ok": False,
+                                                                "error": "no client output"}
+    result.update(scenario=name, shm_profile=shm, node_qos=qos, domain_id=domain_id,
+                  wall_s=round(time.monotonic() - start, 1), node_alive_at_end=node_alive,
+                  node_exit_code=node.returncode)
+    ready = [line for line in log_text.splitlines() if "ready:" in line]
+    result["node_ready_line"] = ready[0].split("ready:", 1)[1].strip() if ready else None
+    if not result.get("ok"):
+        result["node_log_tail"] = log_text[-2000:]
+    return result
+
+
+def summary(s: dict) -> dict:
+    """The few figures worth reading first, per scenario."""
+    out = {"ok": s.get("ok")}
+    lat = s.get("latency")
+    if lat and lat.get("end_to_end_ms"):
+        out["latency_p50_ms"] = lat["end_to_end_ms"]["p50"]
+        out["latency_p95_ms"] = lat["end_to_end_ms"]["p95"]
+        out["latency_unanswered"] = lat["unanswered"]
+    tp = s.get("throughput")
+    if tp:
+        out.update(fraction_answered=tp["fraction_answered"], answered_hz=tp["answered_hz"],
+                   dropped_frames_node=tp["dropped_frames_node"],
+                   lost_before_node=tp["lost_before_node"],
+                   lag_p50_ms=tp["lag_ms"]["p50"] if tp["lag_ms"] else None,
+                   max_backlog_frames=tp["backlog_frames"]["max"],
+                   node_rss_mb_start_end=[round(tp["node_rss_kb"]["start"] / 1024, 1),
+                                          round(tp["node_rss_kb"]["end"] / 1024, 1)],
+                   node_cpu_percent=tp["node_cpu_percent"])
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=60.0,
+                        help="30 Hz throughput phase per scenario (default 60)")
+    parser.add_argument("--latency-frames", type=int, default=200,
+                        help="one-at-a-time frames in the best-effort scenarios (default 200)")
+    parser.add_argument("--images", type=int, default=30, help="distinct frames to cycle")
+    parser.add_argument("--quick", action="store_true", help="10 s throughput, 50 latency frames")
+    args = parser.parse_args()
+    if args.quick:
+        args.seconds, args.latency_frames, args.images = 10.0, 50, 10
+    command = "python bench/node.py " + " ".join(sys.argv[1:])
+
+    def on_term(signum, frame):  # turn SIGTERM into the finally-blocks' cleanup
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)
+    load_start = load_average()
+    scenarios = []
+    t0 = time.monotonic()
+    with tempfile.TemporaryDirectory(prefix="bench_node_") as tmp:
+        model, model_desc = prepare_model(Path(tmp))
+        for qos in ("sensor_data", "reliable"):
+            for shm in (True, False):
+                lat = args.latency_frames if qos == "sensor_data" else 0
+                timeout = 240 + args.seconds * 2 + lat * 0.5
+                print(f"[bench/node] scenario shm={shm} qos={qos} ...", flush=True)
+                s = run_scenario(model, qos, shm, lat, args.seconds, args.images, Path(tmp),
+                                 timeout)
+                s["load_average_after"] = load_average()
+                print(f"[bench/node]   {json.dumps(summary(s))}", flush=True)
+                scenarios.append(s)
+    if not all(s.get("ok") for s in scenarios):
+        for s in scenarios:
+            if not s.get("ok"):
+                print(f"[bench/node] {s['scenario']} failed: {s.get('error')}\n"
+                      f"{s.get('node_log_tail', '')}", file=sys.stderr)
+        sys.exit("bench/node.py: a scenario failed; results.json left unchanged")
+    record("node", {
+        "model": model_desc, "node_command": " ".join(node_command()),
+        "node_params": "defaults (backend auto, publish_overlay true, publish_markers true) "
+                       "+ model_path, qos",
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        "quick": args.quick, "wall_s": round(time.monotonic() - t0, 1),
+        "load_average_1_5_15": {"start": load_start, "end": load_average()},
+        "summary": {s["scenario"]: summary(s) for s in scenarios},
+        "scenarios": {s["scenario"]: s for s in scenarios},
+    }, command)
+
+
+if __name__ == "__main__":
+    main()
