@@ -65,24 +65,27 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=0,
                         help="also check discovery on this many seeds (at --seed-episodes)")
     parser.add_argument("--seed-episodes", type=int, default=2000)
+    parser.add_argument("--seeds-only", action="store_true",
+                        help="skip the 10,000-episode run; only the discovery seed check")
     parser.add_argument("--out", type=Path, default=None,
-                        help="keep the run here (default: runs/default for 10,000 episodes)")
+                        help="run folder, wiped first (default: runs/bench_dataset)")
     args = parser.parse_args()
     command = "python bench/dataset.py " + " ".join(sys.argv[1:])
-    out = args.out or Path("runs/default")
-    if out.exists() and not (out / "timings.json").exists():
-        shutil.rmtree(out)  # a half-finished earlier run would make the timing meaningless
-    data = run_dataset(out, args.episodes, 0, args.workers)
-    data.update(episodes=args.episodes, workers=args.workers, out=str(out),
-                images_mb=dataset_disk_mb(out), memory=memory_slope())
-    record("dataset", data, command)
+    out = args.out or Path("runs/bench_dataset")  # never runs/default: it is wiped first
+    if not args.seeds_only:
+        if out.exists():
+            shutil.rmtree(out)  # resuming an earlier run would make the timing meaningless
+        data = run_dataset(out, args.episodes, 0, args.workers)
+        data.update(episodes=args.episodes, workers=args.workers, out=str(out),
+                    images_mb=dataset_disk_mb(out), memory=memory_slope())
+        record("dataset", data, command)
     if args.seeds:
         per_seed = []
         for seed in range(1, args.seeds + 1):
             with tempfile.TemporaryDirectory() as tmp:
                 cmd = [sys.executable, "-m", "training", "simulate", "--out", tmp,
                        "--episodes", str(args.seed_episodes), "--seed", str(seed)]
-                subprocess.run(cmd, check=True)
+                subprocess.run(cmd, check=True, stderr=subprocess.DEVNULL)
                 subprocess.run([*cmd[:3], "discover", "--out", tmp], check=True)
                 d = json.loads((Path(tmp) / "discovery.json").read_text())
             per_seed.append({"seed": seed, "n_clusters": d["n_clusters"],

@@ -1,6 +1,6 @@
 """Benchmark ``OutcomeSegmenter.segment`` on 640 x 480 depth: torch vs ONNX, 1 vs 2 threads.
 
-    python bench/inference.py                 # 300 timed frames per configuration (~1-2 min)
+    python bench/inference.py                 # 300 timed frames per configuration (~1-3 min)
     python bench/inference.py --frames 500
     python bench/inference.py --quick         # a smoke run (~20 s)
 

@@ -9,7 +9,9 @@ parameters except model_path and qos) and a client process (bench/_node_client.p
 640 x 480 32FC1 frames on depth/image_raw and subscribes outcome/labels and outcome/status.
 Scenarios: input QoS best effort (node qos:=sensor_data, publisher best effort depth 5) or
 reliable (qos:=reliable, publisher reliable depth 5), each with and without the Fast DDS SHM
-profile (config/fastdds_shm.xml via FASTRTPS_DEFAULT_PROFILES_FILE, for both processes).
+profile (config/fastdds_shm.xml via FASTRTPS_DEFAULT_PROFILES_FILE, for both processes);
+"no SHM profile" means Fast DDS's built-in transports (``udp_datagrams_during`` shows how
+much of the traffic went over UDP).
 
 * latency (best-effort scenarios): one frame at a time at 10 Hz, publish -> labels received;
 * throughput: 30 Hz for ``--seconds``: fraction answered, node dropped_frames (newest-frame
@@ -61,6 +63,14 @@ def scenario_env(domain_id: int, shm: bool) -> dict[str, str]:
     return env
 
 
+def udp_counters() -> dict[str, int]:
+    """Host-wide UDP counters (/proc/net/snmp): shows whether images went over UDP at all."""
+    rows = [line.split() for line in Path("/proc/net/snmp").read_text().splitlines()
+            if line.startswith("Udp:")]
+    return {k: int(v) for k, v in zip(rows[0][1:], rows[1][1:], strict=True)
+            if k in ("InDatagrams", "OutDatagrams", "RcvbufErrors", "InErrors")}
+
+
 def stop(proc: subprocess.Popen | None, timeout: float = 10.0) -> None:
     """SIGINT, then SIGKILL if it does not exit; only this process, by its id."""
     if proc is None or proc.poll() is not None:
@@ -80,7 +90,7 @@ def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds:
     env = scenario_env(domain_id, shm)
     log_path, out = tmp / f"{name}.node.log", tmp / f"{name}.json"
     node = client = None
-    start = time.monotonic()
+    start, udp0, load0 = time.monotonic(), udp_counters(), load_average()
     try:
         with open(log_path, "w") as log:
             node = subprocess.Popen(
@@ -99,12 +109,15 @@ def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds:
     finally:
         stop(client)
         stop(node)
+    udp1 = udp_counters()
     log_text = log_path.read_text()
     result = json.loads(out.read_text()) if out.exists() else {"ok": False,
                                                                 "error": "no client output"}
     result.update(scenario=name, shm_profile=shm, node_qos=qos, domain_id=domain_id,
                   wall_s=round(time.monotonic() - start, 1), node_alive_at_end=node_alive,
-                  node_exit_code=node.returncode)
+                  node_exit_code=node.returncode, load_average_before=load0,
+                  load_average_after=load_average(),
+                  udp_datagrams_during={k: udp1[k] - udp0[k] for k in udp0})
     ready = [line for line in log_text.splitlines() if "ready:" in line]
     result["node_ready_line"] = ready[0].split("ready:", 1)[1].strip() if ready else None
     if not result.get("ok"):
@@ -116,10 +129,10 @@ def summary(s: dict) -> dict:
     """The few figures worth reading first, per scenario."""
     out = {"ok": s.get("ok")}
     lat = s.get("latency")
-    if lat and lat.get("end_to_end_ms"):
-        out["latency_p50_ms"] = lat["end_to_end_ms"]["p50"]
-        out["latency_p95_ms"] = lat["end_to_end_ms"]["p95"]
-        out["latency_unanswered"] = lat["unanswered"]
+    if lat:
+        e2e = lat.get("end_to_end_ms") or {}
+        out.update(latency_p50_ms=e2e.get("p50"), latency_p95_ms=e2e.get("p95"),
+                   latency_unanswered=f"{lat['unanswered']}/{lat['frames']}")
     tp = s.get("throughput")
     if tp:
         out.update(fraction_answered=tp["fraction_answered"], answered_hz=tp["answered_hz"],
@@ -163,7 +176,6 @@ def main() -> None:
                 print(f"[bench/node] scenario shm={shm} qos={qos} ...", flush=True)
                 s = run_scenario(model, qos, shm, lat, args.seconds, args.images, Path(tmp),
                                  timeout)
-                s["load_average_after"] = load_average()
                 print(f"[bench/node]   {json.dumps(summary(s))}", flush=True)
                 scenarios.append(s)
     if not all(s.get("ok") for s in scenarios):

@@ -207,9 +207,10 @@ def require_connection(reader: Any, name: str, namespace: str, msgtype: str,
     conn = bag_connection(reader, name, namespace, msgtype)
     if conn is None:
         same_type = sorted({c.topic for c in reader.connections if c.msgtype == msgtype})
-        raise BagToolError(f"bag {path} has no single topic for {name!r} (namespace "
-                           f"{namespace or '/'!r}); its {msgtype} topics: "
-                           f"{same_type or 'none'} (use --topic / --namespace)")
+        tail = "" if name.startswith("/") else f" nor exactly one '.../{name}'"
+        raise BagToolError(f"bag {path} has no topic {resolve_topic(name, namespace)}{tail}; "
+                           f"its {msgtype} topics: {same_type or 'none'} (use --topic / "
+                           "--namespace)")
     return conn
 
 
@@ -287,9 +288,10 @@ def load_ground_truth(bag: Path) -> dict | None:
         return None
     try:
         gt = json.loads(path.read_text())
-        frames = gt["frames"]
-        for f in frames:
-            f["stamp_ns"], f["pixel_counts"], f["width"], f["height"]  # noqa: B018
+        for frame in gt["frames"]:
+            for field in ("stamp_ns", "pixel_counts", "width", "height"):
+                if field not in frame:
+                    raise KeyError(f"a frame has no '{field}'")
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise BagToolError(f"{path}: not a ground-truth file of `python -m training "
                            f"export-bag` ({type(exc).__name__}: {exc})") from None
@@ -368,14 +370,10 @@ def process_bag(in_bag: Path, out_bag: Path | None = None, *, model: str | None 
         raise BagToolError(f"{out_bag} exists; pass --overwrite or choose another --out")
     if not 0.0 <= overlay_alpha <= 1.0:
         raise BagToolError(f"overlay alpha must be in [0, 1], got {overlay_alpha}")
-    resolve_topic(topic, namespace)  # invalid names fail before the model loads
-    resolve_topic(camera_info_topic, namespace)
     ground_truth = load_ground_truth(in_bag)
-    segmenter = _segmenter(model, device, backend, presence_min_pixels, num_threads)
-    segmenter.warmup()  # as the node does, so the first frames' inference_ms is not inflated
 
     reader = open_reader(in_bag)
-    try:
+    try:  # topics first: a wrong name fails before the model loads
         image_conn = require_connection(reader, topic, namespace, IMAGE, in_bag)
         info_conn = bag_connection(reader, camera_info_topic, namespace, CAMERA_INFO)
         out_topics = {name: resolve_topic(name, namespace)
@@ -385,36 +383,35 @@ def process_bag(in_bag: Path, out_bag: Path | None = None, *, model: str | None 
         if copy_input and clash:
             raise BagToolError(f"bag {in_bag} already has {clash}: pass --no-copy-input or "
                                "another --namespace")
+        segmenter = _segmenter(model, device, backend, presence_min_pixels, num_threads)
         writer = open_writer(out_bag, storage or bag_storage(in_bag), overwrite)
         try:
             copied = {c.id: copy_connection(writer, c) for c in reader.connections} \
                 if copy_input else {}
             types = {LABELS_TOPIC: IMAGE, STATUS_TOPIC: DIAGNOSTIC_ARRAY, OVERLAY_TOPIC: IMAGE}
-            out = {name: writer.add_connection(topic_, types[name], typestore=typestore())
-                   for name, topic_ in out_topics.items()}
+            out = {name: writer.add_connection(name_, types[name], typestore=typestore())
+                   for name, name_ in out_topics.items()}
             wanted = reader.connections if copy_input else \
                 [c for c in (image_conn, info_conn) if c is not None]
+            t0 = time.perf_counter()
             stats = _Stats()
             camera_info = None
-            t0 = time.perf_counter()
             bar = tqdm(total=image_conn.msgcount, desc="outcome_bag", unit="frame",
                        disable=not progress)
             for conn, log_time, raw in reader.messages(connections=wanted):
                 if conn.id in copied:
                     writer.write(copied[conn.id], log_time, raw)
                 if info_conn is not None and conn.id == info_conn.id:
-                    try:
+                    try:  # the newest camera_info, as the node keeps it
                         camera_info = deserialize(raw, CAMERA_INFO)
                     except Exception:  # a corrupt camera_info only costs the 3-D positions
                         camera_info = None
-                    continue
-                if conn.id != image_conn.id:
-                    continue
-                frame = _process_raw(segmenter, raw, log_time, camera_info,
-                                     overlay_alpha if overlay else None)
-                _write_frame(writer, out, frame, log_time)
-                stats.add(frame)
-                bar.update()
+                elif conn.id == image_conn.id:
+                    frame = _process_raw(segmenter, raw, log_time, camera_info,
+                                         overlay_alpha if overlay else None)
+                    _write_frame(writer, out, frame, log_time)
+                    stats.add(frame)
+                    bar.update()
             bar.close()
         finally:
             writer.close()
@@ -440,9 +437,11 @@ def _segmenter(model: str | None, device: str, backend: str, presence_min_pixels
     from task_outcome_ros.inference import OutcomeSegmenter
 
     try:
-        return OutcomeSegmenter(model or None, device=device,
-                                presence_min_pixels=presence_min_pixels, backend=backend,
-                                num_threads=num_threads)
+        segmenter = OutcomeSegmenter(model or None, device=device,
+                                     presence_min_pixels=presence_min_pixels, backend=backend,
+                                     num_threads=num_threads)
+        segmenter.warmup()  # as the node does, so the first inference_ms is not inflated
+        return segmenter
     except (CheckpointError, ValueError, RuntimeError, OSError, ImportError) as exc:
         raise BagToolError(f"cannot use model '{model or 'shipped'}': {exc}") from None
 

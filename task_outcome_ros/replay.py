@@ -14,6 +14,7 @@ so the package (and this module) still imports where ROS is not installed.
 from __future__ import annotations
 
 import argparse
+import signal
 import statistics
 import sys
 import time
@@ -47,8 +48,19 @@ def build_parser(qos_choices: tuple[str, ...]) -> argparse.ArgumentParser:
     p.add_argument("--delay", type=float, default=0.5,
                    help="seconds between the subscriber appearing and the first message, so "
                         "its side of discovery completes (default %(default)s)")
-    p.add_argument("--limit", type=int, default=None, help="stop after N images")
+    p.add_argument("--limit", type=_positive_int, default=None,
+                   help="at most N images per pass")
     return p
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
 
 
 def _positive_float(text: str) -> float:
@@ -107,7 +119,7 @@ class Replayer:
         conns = list(filter(None, (self.image_conn, self.info_conn)))
         images = 0
         for conn, log_time, raw in self.reader.messages(connections=conns):
-            if conn.id == self.image_conn.id and limit is not None and images >= limit:
+            if limit is not None and images >= limit:
                 break
             first = log_time if first is None else first
             last = log_time
@@ -129,10 +141,15 @@ class Replayer:
         return 0 if self.info_conn is None else self.published[self.info_conn.id]
 
 
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console script ``outcome_replay``; returns the process exit code."""
     import rclpy
     from rclpy.duration import Duration
+    from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import remove_ros_args
 
     from task_outcome_ros.node import QOS_CHOICES, subscription_qos
@@ -147,11 +164,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{NODE_NAME}: error: {exc}", file=sys.stderr)
         return 2
     try:
-        rclpy.init(args=[NODE_NAME, *argv])
+        # Python's own SIGINT handling: Ctrl-C raises KeyboardInterrupt between two messages
+        # (rclpy's handler would invalidate the context under a publish in progress).
+        rclpy.init(args=[NODE_NAME, *argv], signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # malformed --ros-args
         print(f"{NODE_NAME}: error: cannot start: {exc}", file=sys.stderr)
         reader.close()
         return 2
+    for sig in (signal.SIGINT, signal.SIGTERM):  # also when started with SIGINT ignored
+        signal.signal(sig, _interrupt)
     node = rclpy.create_node(NODE_NAME, namespace=args.namespace or None)
     log = node.get_logger()
     code = 0

@@ -35,9 +35,13 @@ RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 
 def node_command() -> list[str]:
     """The installed console script if there is one, else the same entry point via -m."""
-    script = shutil.which("outcome_node") or shutil.which(
-        "outcome_node", path=str(Path(sys.prefix) / "bin"))
-    return [script] if script else [sys.executable, "-m", "task_outcome_ros.node"]
+    return script_command("outcome_node", "task_outcome_ros.node")
+
+
+def script_command(name: str, module: str) -> list[str]:
+    """Console script ``name`` (on PATH or beside this Python), else ``python -m module``."""
+    script = shutil.which(name) or shutil.which(name, path=str(Path(sys.prefix) / "bin"))
+    return [script] if script else [sys.executable, "-m", module]
 
 
 def ros_env(domain_id: int | None = None) -> dict[str, str]:

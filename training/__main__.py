@@ -1,9 +1,9 @@
 """``python -m training <stage>``: the offline pipeline, one sub-command per stage.
 
 simulate -> discover -> render (+ manifest, previews) -> train -> evaluate; ``dataset`` runs
-the first three, ``run`` runs everything; ``export-bag`` writes a run's images as a rosbag2 bag
-for the ROS side (outcome_bag, outcome_replay). Each stage reads the previous stage's files in the
-run folder (``--out``) and writes its own; re-running a stage resumes it.
+the first three, ``run`` runs everything. Each stage reads the previous stage's files in the
+run folder (``--out``) and writes its own; re-running a stage resumes it. ``export-bag`` writes
+a run's images as a rosbag2 bag for the ROS side (outcome_bag, outcome_replay).
 """
 
 from __future__ import annotations
