@@ -10,8 +10,8 @@ parameters except model_path and qos) and a client process (bench/_node_client.p
 Scenarios: input QoS best effort (node qos:=sensor_data, publisher best effort depth 5) or
 reliable (qos:=reliable, publisher reliable depth 5), each with and without the Fast DDS SHM
 profile (config/fastdds_shm.xml via FASTRTPS_DEFAULT_PROFILES_FILE, for both processes);
-"no SHM profile" means Fast DDS's built-in transports (``udp_datagrams_during`` shows how
-much of the traffic went over UDP).
+"no SHM profile" means Fast DDS's built-in transports (``host_udp_datagrams_during`` hints
+how much went over UDP, but the counters are host-wide: other processes add to them).
 
 * latency (best-effort scenarios): one frame at a time at 10 Hz, publish -> labels received;
 * throughput: 30 Hz for ``--seconds``: fraction answered, node dropped_frames (newest-frame
@@ -117,7 +117,7 @@ def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds:
                   wall_s=round(time.monotonic() - start, 1), node_alive_at_end=node_alive,
                   node_exit_code=node.returncode, load_average_before=load0,
                   load_average_after=load_average(),
-                  udp_datagrams_during={k: udp1[k] - udp0[k] for k in udp0})
+                  host_udp_datagrams_during={k: udp1[k] - udp0[k] for k in udp0})
     ready = [line for line in log_text.splitlines() if "ready:" in line]
     result["node_ready_line"] = ready[0].split("ready:", 1)[1].strip() if ready else None
     if not result.get("ok"):
