@@ -23,6 +23,7 @@ from torch import nn
 from task_outcome_ros.checkpoint import CheckpointError, LoadedCheckpoint, load, resolve_device
 from task_outcome_ros.depth import sanitize_depth
 from task_outcome_ros.labels import (
+    BACKGROUND,
     CLASS_NAMES,
     OUTCOME_IDS,
     OUTCOME_NAMES,
@@ -224,6 +225,10 @@ class OutcomeSegmenter:
                 preprocess_sanitized(depth, self.input_size, self.normalisation))
             labels = small if small.shape == (h, w) else cv2.resize(
                 small, (w, h), interpolation=cv2.INTER_NEAREST)
+            # No measurement, no claim: the training labels of pixels without depth are
+            # "ignore", so the net's guess there is unsupervised; calling them background keeps
+            # pixel counts comparable with the presence rule's truth (valid pixels only).
+            labels[~np.isfinite(depth)] = BACKGROUND
         threshold = presence_threshold(h, w, self.presence_min_pixels)
         counts = outcome_pixel_counts(labels)
         present = outcomes_present(labels, self.presence_min_pixels)
