@@ -15,6 +15,7 @@ the node at start-up with a FATAL message naming what to fix.
 from __future__ import annotations
 
 import array
+import signal
 import sys
 import threading
 import time
@@ -33,6 +34,7 @@ from rcl_interfaces.msg import (
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
@@ -335,10 +337,19 @@ def _exc_reason(exc: Exception) -> str:
     return text[-1] if text else type(exc).__name__
 
 
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 def main(args: list[str] | None = None) -> int:
     """Console script ``outcome_node``; returns the process exit code."""
     try:
-        rclpy.init(args=args)
+        # Our own SIGINT/SIGTERM handling: rclpy's handler shuts the context down at once,
+        # while the worker thread may be publishing (seen: a segfault at exit). Raising
+        # KeyboardInterrupt instead lets main stop the worker first, then shut down.
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        signal.signal(signal.SIGINT, _interrupt)
+        signal.signal(signal.SIGTERM, _interrupt)
     except Exception as exc:  # malformed --ros-args: rcl's message says which
         print(f"[FATAL] [{NODE_NAME}]: cannot start: {_exc_reason(exc)}", file=sys.stderr)
         return 2
@@ -351,7 +362,10 @@ def main(args: list[str] | None = None) -> int:
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
-        executor.spin()
+        # Short waits: without rclpy's signal handler nothing else wakes a blocked wait set,
+        # and Python runs our SIGINT handler only between waits.
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -25,7 +25,7 @@ DEFAULT_OVERLAY_ALPHA = 0.5
 # --- overlay -----------------------------------------------------------------------------------
 
 def colourise_depth(depth_m: np.ndarray) -> np.ndarray:
-    """float metres (NaN invalid) -> RGB uint8; near warm, far cool, invalid grey."""
+    """float metres (NaN invalid) -> RGB uint8 grey shading (near bright), invalid mid-grey."""
     valid = np.isfinite(depth_m)
     rgb = np.empty(depth_m.shape + (3,), np.uint8)
     rgb[:] = L.CLASS_COLOURS[L.IGNORE]
@@ -39,8 +39,8 @@ def colourise_depth(depth_m: np.ndarray) -> np.ndarray:
         scale = 255.0 / max(float(hi - lo), 1e-6)
         grey = cv2.convertScaleAbs(np.where(valid, depth_m, lo), alpha=-scale,
                                    beta=255.0 + lo * scale)  # near -> 255, far -> 0, saturated
-        turbo = cv2.cvtColor(cv2.applyColorMap(grey, cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
-        np.copyto(rgb, turbo, where=valid[..., None])
+        # Grey, not a rainbow: the label colours (green/yellow/red) must stand out from it.
+        np.copyto(rgb, np.repeat(grey[..., None], 3, axis=2), where=valid[..., None])
     return rgb
 
 

@@ -187,8 +187,13 @@ def test_runtime_parameters(session):
         reply = client.request(msg, ("status", "labels", "overlay"))
         check_reply(msg, reply)
         overlay = np.frombuffer(bytes(reply.overlay.data), np.uint8).reshape(48, 64, 3)
-        # alpha 1: pure label colours (this checkpoint labels every pixel fell_outside).
-        assert (overlay == L.CLASS_COLOURS[L.FELL_OUTSIDE]).all()
+        labels = np.frombuffer(bytes(reply.labels.data), np.uint8).reshape(48, 64)
+        # alpha 1: pure label colours. This checkpoint labels every pixel fell_outside, except
+        # where the depth is invalid (no measurement -> background, shown as depth only).
+        fell = labels == L.FELL_OUTSIDE
+        assert fell.mean() > 0.5 and (labels[~fell] == L.BACKGROUND).all()
+        assert (overlay[fell] == L.CLASS_COLOURS[L.FELL_OUTSIDE]).all()
+        assert not (overlay[~fell] == L.CLASS_COLOURS[L.FELL_OUTSIDE]).all(axis=-1).any()
     finally:
         assert _set_parameters(client, [("overlay_alpha", 0.5)]) == [True]
 

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from task_outcome_ros.labels import CLASS_COLOURS, CLASS_NAMES, colourise
+from task_outcome_ros.outcome_report import overlay_rgb
 
 
 def depth_to_grey(depth_m: np.ndarray, near: float = 1.0, far: float = 4.0) -> np.ndarray:
@@ -14,15 +15,6 @@ def depth_to_grey(depth_m: np.ndarray, near: float = 1.0, far: float = 4.0) -> n
     with np.errstate(invalid="ignore"):
         g = np.clip((far - depth_m) / (far - near), 0.0, 1.0)
     return np.where(np.isfinite(depth_m), g * 255, 0).astype(np.uint8)
-
-
-def overlay(depth_m: np.ndarray, labels: np.ndarray, alpha: float = 0.55) -> np.ndarray:
-    """RGB: grey depth with the label colours blended in (background left as depth)."""
-    grey = np.repeat(depth_to_grey(depth_m)[..., None], 3, axis=2).astype(np.float32)
-    colour = colourise(labels).astype(np.float32)
-    blend = np.where((labels > 0)[..., None] & (labels != 255)[..., None],
-                     (1 - alpha) * grey + alpha * colour, grey)
-    return blend.astype(np.uint8)
 
 
 def save_examples(path: Path, run_dir: Path, manifest: dict, n: int = 6) -> None:
@@ -45,7 +37,7 @@ def save_examples(path: Path, run_dir: Path, manifest: dict, n: int = 6) -> None
         row[0].set_title(f"episode {im['episode']} depth", fontsize=9)
         row[1].imshow(colourise(labels))
         row[1].set_title("labels: " + ", ".join(present), fontsize=9)
-        row[2].imshow(overlay(depth, labels))
+        row[2].imshow(overlay_rgb(depth, labels))
         row[2].set_title("objects: " + ", ".join(im["objects"]), fontsize=8)
         for ax in row:
             ax.axis("off")
