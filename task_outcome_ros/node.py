@@ -78,6 +78,10 @@ PARAMS: dict[str, _ParamSpec] = {
         L.PRESENCE_MIN_PIXELS,
         "Pixels an outcome needs to count as present at 640x480 (scaled with image area).",
         True, "an integer >= 1 (default 50)"),
+    "threads": _ParamSpec(
+        1, "CPU threads for inference (torch and onnxruntime). 1 is the measured best on a "
+           "2-core machine shared with other work (bench/inference.py).",
+        True, "an integer >= 1 (default 1)"),
     "publish_overlay": _ParamSpec(
         True, "Publish outcome/overlay (rgb8 colourised depth with the labels blended in).",
         False, "true or false"),
@@ -150,8 +154,9 @@ class OutcomeNode(Node):
             desc = ParameterDescriptor(name=name, description=spec.description,
                                        read_only=spec.read_only,
                                        additional_constraints=f"valid: {spec.hint}")
-            if name == "presence_min_pixels":
-                desc.integer_range = [IntegerRange(from_value=1, to_value=1_000_000, step=1)]
+            if name in ("presence_min_pixels", "threads"):
+                top = 1_000_000 if name == "presence_min_pixels" else 256
+                desc.integer_range = [IntegerRange(from_value=1, to_value=top, step=1)]
             elif name == "overlay_alpha":
                 desc.floating_point_range = [
                     FloatingPointRange(from_value=0.0, to_value=1.0, step=0.0)]
@@ -180,6 +185,7 @@ class OutcomeNode(Node):
         try:
             seg = OutcomeSegmenter(model_path, device=self._params["device"],
                                    presence_min_pixels=self._params["presence_min_pixels"],
+                                   num_threads=self._params["threads"],
                                    backend=self._params["backend"])
             seg.warmup()
         except (CheckpointError, ValueError, RuntimeError, OSError, ImportError) as exc:
