@@ -29,6 +29,7 @@ import numpy as np
 
 from task_outcome_ros import labels as L
 from task_outcome_ros import outcome_report as R
+from task_outcome_ros.cli_args import positive_int
 from task_outcome_ros.depth import DepthDecodeError, decode_depth, encode_depth
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -515,16 +516,6 @@ def _print_summary(summary: dict) -> None:
               f"{Path(summary['output']) / SCORE_FILE}")
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
 def build_offline_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="outcome_bag", description="Run the outcome segmenter on every depth image of a "
@@ -538,8 +529,8 @@ def build_offline_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default=None, help="checkpoint or ONNX file (default: shipped)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu")
     p.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto")
-    p.add_argument("--threads", type=_positive_int, default=None, help="inference threads")
-    p.add_argument("--presence-min-pixels", type=_positive_int, default=L.PRESENCE_MIN_PIXELS,
+    p.add_argument("--threads", type=positive_int, default=None, help="inference threads")
+    p.add_argument("--presence-min-pixels", type=positive_int, default=L.PRESENCE_MIN_PIXELS,
                    help="pixels an outcome needs to be present at 640x480 (default %(default)s)")
     p.add_argument("--topic", default=DEPTH_TOPIC, help="depth image topic (default %(default)s)")
     p.add_argument("--camera-info-topic", default=CAMERA_INFO_TOPIC,

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from task_outcome_ros import bag_tools as B
+from task_outcome_ros.cli_args import positive_float, positive_int
 
 NODE_NAME = "outcome_replay"
 
@@ -32,7 +33,7 @@ def build_parser(qos_choices: tuple[str, ...]) -> argparse.ArgumentParser:
         "over DDS with the recorded timing (for outcome_node). ROS arguments go after "
         "--ros-args.")
     p.add_argument("bag", type=Path, help="bag folder (mcap or sqlite3)")
-    p.add_argument("--rate-factor", type=_positive_float, default=1.0,
+    p.add_argument("--rate-factor", type=positive_float, default=1.0,
                    help="playback speed, 2 = twice as fast (default %(default)s)")
     p.add_argument("--loop", action="store_true", help="play again and again (Ctrl-C stops)")
     p.add_argument("--qos", choices=qos_choices, default="reliable",
@@ -48,29 +49,9 @@ def build_parser(qos_choices: tuple[str, ...]) -> argparse.ArgumentParser:
     p.add_argument("--delay", type=float, default=0.5,
                    help="seconds between the subscriber appearing and the first message, so "
                         "its side of discovery completes (default %(default)s)")
-    p.add_argument("--limit", type=_positive_int, default=None,
+    p.add_argument("--limit", type=positive_int, default=None,
                    help="at most N images per pass")
     return p
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
-    return value
 
 
 def _msg_type(msgtype: str) -> type:

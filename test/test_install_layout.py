@@ -79,3 +79,53 @@ def test_python_packages_are_installed(install):
     assert (site / PACKAGE / "node.py").is_file()
     assert (site / PACKAGE / "labels.py").is_file()
     assert (site / "training" / "__main__.py").is_file()
+
+
+def test_node_runs_from_the_install_tree_like_ros2_run(install):
+    """What `ros2 run task_outcome_ros outcome_node` does after `colcon build`: the ament index
+    gives the package prefix, the executable is <prefix>/lib/<package>/outcome_node, and the
+    shipped model is found inside the installed package (no model_path)."""
+    import random
+    import signal
+    import subprocess
+    import time
+
+    from ament_index_python.packages import get_package_prefix
+
+    site = next((install / "lib").glob("python3*/site-packages"))
+    if not (site / PACKAGE / "models" / "outcome_fcn.pt").is_file():
+        pytest.skip("no shipped model in the package to start the node with")
+    env = dict(os.environ, AMENT_PREFIX_PATH=str(install),
+               PYTHONPATH=os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")]),
+               ROS_DOMAIN_ID=str(random.randint(1, 200)),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    os.environ["AMENT_PREFIX_PATH"], saved = str(install), os.environ.get("AMENT_PREFIX_PATH")
+    try:
+        prefix = Path(get_package_prefix(PACKAGE))
+    finally:
+        if saved is None:
+            del os.environ["AMENT_PREFIX_PATH"]
+        else:
+            os.environ["AMENT_PREFIX_PATH"] = saved
+    assert prefix == install
+    exe = prefix / "lib" / PACKAGE / "outcome_node"
+    proc = subprocess.Popen([str(exe)], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, cwd=install.parent)
+    try:
+        lines, deadline = [], time.monotonic() + 60
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if "ready:" in line:
+                break
+        log = "".join(lines)
+        assert "ready:" in log, log
+        assert str(site / PACKAGE / "models" / "outcome_fcn.pt") in log, log
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+from task_outcome_ros.cli_args import non_negative_int, positive_int
 from training.config import (
     ConfigError,
     DatasetConfig,
@@ -25,36 +26,16 @@ from training.config import (
 DEFAULT_OUT = Path("runs/default")
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
-
-
 def add_dataset_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=DEFAULT_OUT,
                    help="run folder (default: %(default)s)")
-    p.add_argument("--episodes", type=_positive_int, default=None,
+    p.add_argument("--episodes", type=positive_int, default=None,
                    help="episodes to simulate (default 10000, or the run's own)")
-    p.add_argument("--seed", type=_non_negative_int, default=None,
+    p.add_argument("--seed", type=non_negative_int, default=None,
                    help="run seed (default 0, or the run's own)")
-    p.add_argument("--workers", type=_positive_int, default=None,
+    p.add_argument("--workers", type=positive_int, default=None,
                    help="worker processes (default 2); results do not depend on it")
-    p.add_argument("--chunk-size", type=_positive_int, default=None,
+    p.add_argument("--chunk-size", type=positive_int, default=None,
                    help="episodes per resumable unit (default 50)")
 
 
@@ -129,16 +110,16 @@ def cmd_dataset(args) -> None:
 
 
 def add_train_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--epochs", type=_positive_int, default=None, help="training epochs")
-    p.add_argument("--batch-size", type=_positive_int, default=None)
+    p.add_argument("--epochs", type=positive_int, default=None, help="training epochs")
+    p.add_argument("--batch-size", type=positive_int, default=None)
     p.add_argument("--lr", type=float, default=None)
-    p.add_argument("--base-width", type=_positive_int, default=None, help="FCN width")
+    p.add_argument("--base-width", type=positive_int, default=None, help="FCN width")
     p.add_argument("--input-size", type=int, nargs=2, metavar=("W", "H"), default=None,
                    help="working resolution (default 160 120)")
     p.add_argument("--max-minutes", type=float, default=None, help="training time budget")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None)
     p.add_argument("--amp", choices=("auto", "bf16", "off"), default=None)
-    p.add_argument("--train-seed", type=_non_negative_int, default=None)
+    p.add_argument("--train-seed", type=non_negative_int, default=None)
     p.add_argument("--no-resume", action="store_true", help="start training from scratch")
     p.add_argument("--ship", action="store_true",
                    help="copy the best checkpoint (+ ONNX) into task_outcome_ros/models/")

@@ -19,6 +19,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from task_outcome_ros import bag_tools as B
+from task_outcome_ros.cli_args import positive_float, positive_int
 from task_outcome_ros.labels import PRESENCE_MIN_PIXELS
 from training.dataset import load_manifest
 from training.render import image_paths, read_pair
@@ -120,8 +121,8 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bag", type=Path, default=None,
                    help="bag folder to create (default: <out>/bags/<split>_<encoding>)")
     p.add_argument("--split", choices=SPLITS, default="val")
-    p.add_argument("--limit", type=_positive_int, default=None, help="at most N images")
-    p.add_argument("--rate", type=_positive_float, default=5.0,
+    p.add_argument("--limit", type=positive_int, default=None, help="at most N images")
+    p.add_argument("--rate", type=positive_float, default=5.0,
                    help="frames per second of the stamps (default %(default)s)")
     p.add_argument("--encoding", choices=ENCODINGS, default="32FC1")
     p.add_argument("--storage", choices=B.STORAGES, default="mcap")
@@ -142,21 +143,3 @@ def cmd_export_bag(args: argparse.Namespace) -> None:
           f"{truth['camera_info_topic']} -> {truth['bag']} (+ {B.GROUND_TRUTH_FILE})")
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
-    return value
