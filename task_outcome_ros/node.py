@@ -359,24 +359,27 @@ def main(args: list[str] | None = None) -> int:
     except Exception as exc:  # malformed --ros-args: rcl's message says which
         print(f"[FATAL] [{NODE_NAME}]: cannot start: {_exc_reason(exc)}", file=sys.stderr)
         return 2
+    node = executor = None
     try:
+        # One try from here on: a signal at any moment (even while the model loads or right
+        # after "ready") must still end in a clean shutdown, never an uncaught interrupt.
         node = OutcomeNode()
-    except StartupError as exc:
-        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
-        return 1
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
         # Short waits: without rclpy's signal handler nothing else wakes a blocked wait set,
         # and Python runs our SIGINT handler only between waits.
         while rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
+    except StartupError as exc:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
+        return 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        executor.shutdown()
-        node.destroy_node()
+        if executor is not None:
+            executor.shutdown()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
     return 0
 
