@@ -327,21 +327,15 @@ def score(ground_truth: dict, predicted: dict[int, dict[str, bool] | None],
         if not correct[i]:
             mistakes.append({"index": frame.get("index", i), "episode": frame.get("episode"),
                              "stamp_ns": stamp})
+    # Missing and ERROR frames predict nothing present, and are never all-correct.
     report: dict[str, Any] = {
         "n_images": n,
+        **L.presence_scores(truth, pred),
         "image_all_correct": float(correct.mean()) if n else 0.0,
         "n_errors": n_errors,
         "n_missing": n_missing,
         "presence_min_pixels": presence_min_pixels,
     }
-    for k, name in enumerate(L.OUTCOME_NAMES):
-        tp = int(np.sum(truth[:, k] & pred[:, k]))
-        fp = int(np.sum(~truth[:, k] & pred[:, k]))
-        fn = int(np.sum(truth[:, k] & ~pred[:, k]))
-        report[name] = {"presence_precision": tp / (tp + fp) if tp + fp else 1.0,
-                        "presence_recall": tp / (tp + fn) if tp + fn else 1.0,
-                        "support": int(truth[:, k].sum()), "false_positives": fp,
-                        "false_negatives": fn}
     report["presence_precision"] = {n_: report[n_]["presence_precision"]
                                     for n_ in L.OUTCOME_NAMES}
     report["presence_recall"] = {n_: report[n_]["presence_recall"] for n_ in L.OUTCOME_NAMES}

@@ -73,3 +73,20 @@ def colourise(labels: np.ndarray) -> np.ndarray:
     for class_id, rgb in CLASS_COLOURS.items():
         lut[class_id] = rgb
     return lut[np.asarray(labels, dtype=np.uint8)]
+
+
+def presence_scores(truth: np.ndarray, pred: np.ndarray) -> dict:
+    """The paper's image-level metric over N images: (N, 3) boolean presence arrays, columns in
+    OUTCOME_NAMES order -> all-correct rate and per-outcome presence precision/recall."""
+    truth, pred = np.asarray(truth, bool), np.asarray(pred, bool)
+    out: dict = {"image_all_correct": float(np.mean(np.all(truth == pred, axis=1)))
+                 if len(truth) else 0.0}
+    for k, name in enumerate(OUTCOME_NAMES):
+        tp = int(np.sum(truth[:, k] & pred[:, k]))
+        fp = int(np.sum(~truth[:, k] & pred[:, k]))
+        fn = int(np.sum(truth[:, k] & ~pred[:, k]))
+        out[name] = {"presence_precision": tp / (tp + fp) if tp + fp else 1.0,
+                     "presence_recall": tp / (tp + fn) if tp + fn else 1.0,
+                     "support": int(truth[:, k].sum()), "false_positives": fp,
+                     "false_negatives": fn}
+    return out

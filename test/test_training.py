@@ -17,9 +17,10 @@ from task_outcome_ros.labels import (
     STUCK_ON_RIM,
     SUCCESS,
     outcomes_present,
+    presence_scores,
 )
 from training.config import ConfigError, TrainConfig
-from training.evaluate import confusion, presence_scores
+from training.evaluate import confusion
 
 
 def test_presence_scores_on_hand_made_presence():

@@ -21,26 +21,12 @@ from task_outcome_ros.labels import (
     OUTCOME_NAMES,
     PRESENCE_MIN_PIXELS,
     outcomes_present,
+    presence_scores,
     presence_threshold,
 )
 from training.config import save_json
 from training.dataset import load_manifest
 from training.render import read_pair
-
-
-def presence_scores(truth: np.ndarray, pred: np.ndarray) -> dict:
-    """(N, 3) boolean presence arrays -> all-correct rate and per-outcome precision/recall."""
-    out = {"image_all_correct": float(np.mean(np.all(truth == pred, axis=1))) if len(truth)
-           else 0.0}
-    for k, name in enumerate(OUTCOME_NAMES):
-        tp = int(np.sum(truth[:, k] & pred[:, k]))
-        fp = int(np.sum(~truth[:, k] & pred[:, k]))
-        fn = int(np.sum(truth[:, k] & ~pred[:, k]))
-        out[name] = {"presence_precision": tp / (tp + fp) if tp + fp else 1.0,
-                     "presence_recall": tp / (tp + fn) if tp + fn else 1.0,
-                     "support": int(truth[:, k].sum()), "false_positives": fp,
-                     "false_negatives": fn}
-    return out
 
 
 def confusion(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
