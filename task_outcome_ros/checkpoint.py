@@ -127,13 +127,24 @@ def save(path: str | Path, model: nn.Module, *, model_args: dict[str, Any],
     except Exception as exc:
         raise TypeError(f"checkpoint for {path} holds a value weights_only loading refuses "
                         f"(optimizer_state?): {str(exc).splitlines()[-1][:200]}") from None
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> Path:
+    """Write a file so readers see the old or the new bytes, never half (temp + fsync +
+    rename); readable like any file the user creates (mkstemp alone would leave it 0600,
+    which an installed package's other users could not read)."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(buf.getvalue())
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -11,7 +11,6 @@ from exactly that checkpoint.
 from __future__ import annotations
 
 import argparse
-import os
 import tempfile
 import warnings
 from pathlib import Path
@@ -19,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from task_outcome_ros.checkpoint import load
+from task_outcome_ros.checkpoint import atomic_write_bytes, load
 
 META_SOURCE_SHA256 = "source_checkpoint_sha256"
 META_INPUT_SIZE = "input_size"
@@ -67,20 +66,10 @@ def export_onnx(checkpoint_path: str | Path, onnx_path: str | Path | None = None
         entry = proto.metadata_props.add()
         entry.key, entry.value = key, value
     onnx.checker.check_model(proto)
+    data = proto.SerializeToString()
     if verify:
-        _verify(proto.SerializeToString(), ckpt.model, h, w)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(proto.SerializeToString())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return out
+        _verify(data, ckpt.model, h, w)
+    return atomic_write_bytes(out, data)
 
 
 def _verify(model_bytes: bytes, model: torch.nn.Module, h: int, w: int) -> None:
