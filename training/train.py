@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from task_outcome_ros import checkpoint
+from task_outcome_ros.checkpoint import resolve_device
 from task_outcome_ros.labels import (
     IGNORE,
     NUM_CLASSES,
@@ -39,14 +40,6 @@ from training.config import TrainConfig, save_json, to_dict
 from training.dataset import load_cache, load_manifest
 
 WARMUP_FRACTION = 0.03
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("train.device = 'cuda' but CUDA is not available; use cpu or auto")
-    return torch.device(name)
 
 
 def class_weights(labels: np.ndarray, power: float) -> torch.Tensor:
