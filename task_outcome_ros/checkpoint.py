@@ -30,7 +30,13 @@ from torch import nn
 
 from task_outcome_ros import __version__
 from task_outcome_ros.labels import label_table
-from task_outcome_ros.model import OutcomeFCN, build_model, check_input_size, check_normalisation
+from task_outcome_ros.model import (
+    OutcomeFCN,
+    build_model,
+    check_input_size,
+    check_normalisation,
+    input_channels,
+)
 
 FORMAT = "task_outcome_ros.checkpoint"
 FORMAT_VERSION = 1
@@ -218,6 +224,10 @@ def load(path: str | Path, device: str = "cpu") -> LoadedCheckpoint:
         normalisation = check_normalisation(raw_norm)
     except ValueError as exc:
         raise CheckpointError(f"checkpoint {path}: {exc}") from None
+    if model_args.get("in_channels") != input_channels(normalisation):
+        raise CheckpointError(f"checkpoint {path}: its normalisation makes "
+                              f"{input_channels(normalisation)} input channels but the model "
+                              f"takes in_channels={model_args.get('in_channels')!r}")
     try:
         model = build_model(model_args)
     except (TypeError, ValueError) as exc:

@@ -74,9 +74,9 @@ def default_model_path() -> Path:
 
 @torch.inference_mode()
 def predict_labels(model: nn.Module, batch: torch.Tensor) -> torch.Tensor:
-    """(N, 2, h, w) preprocessed batch -> (N, h, w) uint8 class ids (argmax of the logits)."""
+    """(N, C, h, w) preprocessed batch -> (N, h, w) uint8 class ids (argmax of the logits)."""
     if batch.dim() != 4:
-        raise ValueError(f"batch must be (N, 2, h, w), got shape {tuple(batch.shape)}")
+        raise ValueError(f"batch must be (N, C, h, w), got shape {tuple(batch.shape)}")
     return model(batch).argmax(1).to(torch.uint8)
 
 
@@ -206,7 +206,7 @@ class OutcomeSegmenter:
         return "onnx", f"{onnx_path} matches the checkpoint"
 
     def _predict_small(self, x: np.ndarray) -> np.ndarray:
-        """(2, h, w) network input -> (h, w) uint8 labels at the working size."""
+        """(C, h, w) network input -> (h, w) uint8 labels at the working size."""
         if self._session is not None:
             logits = self._session.run(["logits"], {"input": x[None]})[0][0]
             return np.argmax(logits, axis=0).astype(np.uint8)

@@ -8,9 +8,13 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
 
 0. depth: ``clip((z - offset_m) / scale_m, -clip, clip)``; invalid pixels are 0.
 1. validity: fraction of valid input pixels under each working-size pixel, in [0, 1].
+2. height above the floor (``floor.height_above_floor``) / ``height_scale_m``, clipped like
+   depth; invalid pixels are 0. Present when the dict has ``height_scale_m`` (checkpoints
+   from before it have two channels and keep working).
 
-``preprocess`` (numpy, one image) and ``preprocess_batch`` (torch, N images) are the only two
-implementations; both read the same normalisation dict, and a test proves they agree.
+The channels are computed in one place, ``network_input`` (torch), after the one resize,
+``resize_depth`` (numpy, NaN-aware area average). ``preprocess`` (one numpy image) and
+``preprocess_batch`` (N torch images) both end in ``network_input``; a test proves they agree.
 """
 
 from __future__ import annotations
@@ -24,16 +28,20 @@ import torch.nn.functional as F
 from torch import nn
 
 from task_outcome_ros.depth import sanitize_depth
+from task_outcome_ros.floor import FOCAL_OVER_WIDTH, height_above_floor
 from task_outcome_ros.labels import NUM_CLASSES
 
-IN_CHANNELS = 2
+IN_CHANNELS = 3
 # Cameras sit 1.6-2.4 m from the container (CONTRACTS §4): 2 m maps to 0, a metre to 1.
 # Clip keeps a stray far return (Kinect range tops out at 4.5 m) from dominating activations.
+# Heights are scaled by the wall height (0.25 m), so the rim sits at 1.
 DEFAULT_NORMALISATION: dict[str, Any] = {
-    "mode": "fixed", "offset_m": 2.0, "scale_m": 1.0, "clip": 4.0, "invalid_value": 0.0}
+    "mode": "fixed", "offset_m": 2.0, "scale_m": 1.0, "clip": 4.0, "invalid_value": 0.0,
+    "height_scale_m": 0.25, "focal_over_width": FOCAL_OVER_WIDTH}
+_HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
 DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution
 DEFAULT_MODEL_ARGS: dict[str, Any] = {
-    "in_channels": IN_CHANNELS, "num_classes": NUM_CLASSES, "base_width": 8, "levels": 4,
+    "in_channels": IN_CHANNELS, "num_classes": NUM_CLASSES, "base_width": 8, "levels": 5,
     "decoder_convs": 1}
 
 
@@ -44,11 +52,18 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
     try:
         out = {"mode": "fixed", **{k: float(norm[k]) for k in
                                    ("offset_m", "scale_m", "clip", "invalid_value")}}
+        if any(k in norm for k in _HEIGHT_FIELDS):
+            out.update({k: float(norm[k]) for k in _HEIGHT_FIELDS})
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"normalisation {norm!r} lacks a numeric field: {exc}") from None
-    if not (out["scale_m"] > 0 and out["clip"] > 0):
-        raise ValueError(f"normalisation needs scale_m > 0 and clip > 0, got {norm!r}")
+    if not all(out.get(k, 1.0) > 0 for k in ("scale_m", "clip", *_HEIGHT_FIELDS)):
+        raise ValueError(f"normalisation needs positive scales and clip, got {norm!r}")
     return out
+
+
+def input_channels(normalisation: dict[str, Any]) -> int:
+    """How many channels ``network_input`` makes with this normalisation (2 or 3)."""
+    return 3 if "height_scale_m" in check_normalisation(normalisation) else 2
 
 
 def check_input_size(size: Any) -> tuple[int, int]:
@@ -87,23 +102,22 @@ def resize_depth(depth_m: np.ndarray, input_size: tuple[int, int],
 
 def preprocess(depth_m: np.ndarray, input_size: tuple[int, int],
                normalisation: dict[str, Any] | None = None) -> np.ndarray:
-    """Depth image (H x W metres, NaN/<=0/inf invalid) -> network input (2, h, w) float32."""
+    """Depth image (H x W metres, NaN/<=0/inf invalid) -> network input (C, h, w) float32."""
     return preprocess_sanitized(sanitize_depth(depth_m), input_size, normalisation)
 
 
 def preprocess_sanitized(depth_m: np.ndarray, input_size: tuple[int, int],
                          normalisation: dict[str, Any] | None = None) -> np.ndarray:
     """``preprocess`` for a depth image already through ``depth.sanitize_depth``."""
-    norm = check_normalisation(normalisation or DEFAULT_NORMALISATION)
     depth, frac = resize_depth(depth_m, check_input_size(input_size))
-    z = np.clip((depth - norm["offset_m"]) / norm["scale_m"], -norm["clip"], norm["clip"])
-    z = np.where(frac > 0, z, np.float32(norm["invalid_value"]))
-    return np.stack([z, frac]).astype(np.float32, copy=False)
+    x = network_input(torch.from_numpy(depth)[None], torch.from_numpy(frac)[None],
+                      normalisation or DEFAULT_NORMALISATION)
+    return x[0].numpy()
 
 
 def preprocess_batch(depth_m: torch.Tensor, input_size: tuple[int, int],
                      normalisation: dict[str, Any] | None = None) -> torch.Tensor:
-    """Torch twin of ``preprocess`` for (N, H, W) or (H, W) metre tensors -> (N, 2, h, w).
+    """Torch twin of ``preprocess`` for (N, H, W) or (H, W) metre tensors -> (N, C, h, w).
 
     Identical to ``preprocess`` when the size is unchanged or shrinks by an integer factor
     (e.g. 640 x 480 -> 160 x 120); for other factors torch's area resize differs from
@@ -131,12 +145,18 @@ def preprocess_batch(depth_m: torch.Tensor, input_size: tuple[int, int],
 def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
                   normalisation: dict[str, Any] | None = None) -> torch.Tensor:
     """(N, h, w) working-size depth (metres, as ``resize_depth`` gives) and valid fraction ->
-    (N, 2, h, w) network input. Training uses this on its cached ``resize_depth`` output."""
+    (N, C, h, w) network input (C = 2, or 3 with heights). Training uses this on its cached
+    ``resize_depth`` output, after augmentation, so heights follow the augmented depth."""
     norm = check_normalisation(normalisation or DEFAULT_NORMALISATION)
+    depth, valid_fraction = depth.float(), valid_fraction.float()
     has = valid_fraction > 1e-6
     z = ((depth - norm["offset_m"]) / norm["scale_m"]).clamp(-norm["clip"], norm["clip"])
     z = torch.where(has, z, torch.full_like(z, norm["invalid_value"]))
-    return torch.stack([z, torch.where(has, valid_fraction, torch.zeros_like(z))], dim=1)
+    channels = [z, torch.where(has, valid_fraction, torch.zeros_like(z))]
+    if "height_scale_m" in norm:
+        height = height_above_floor(depth, has, norm["focal_over_width"])
+        channels.append((height / norm["height_scale_m"]).clamp(-norm["clip"], norm["clip"]))
+    return torch.stack(channels, dim=1)
 
 
 def _conv_block(c_in: int, c_out: int, n_convs: int = 2) -> nn.Sequential:

@@ -1,6 +1,7 @@
 """Export a checkpoint to ONNX beside it (``outcome_fcn.pt`` -> ``outcome_fcn.onnx``).
 
-The graph takes the fixed working size of the checkpoint, ``input`` (N, 2, h, w) float32 and
+The graph takes the fixed working size of the checkpoint, ``input`` (N, C, h, w) float32
+(C = the model's ``in_channels``) and
 gives ``logits`` (N, num_classes, h, w). Its metadata records the SHA-256 of the source
 checkpoint, so ``OutcomeSegmenter(backend='auto')`` uses the ONNX file only when it was made
 from exactly that checkpoint.
@@ -52,7 +53,8 @@ def export_onnx(checkpoint_path: str | Path, onnx_path: str | Path | None = None
     ckpt = load(checkpoint_path, device="cpu")
     out = Path(onnx_path) if onnx_path is not None else onnx_path_for(checkpoint_path)
     w, h = ckpt.input_size
-    dummy = torch.zeros(1, 2, h, w)
+    channels = int(ckpt.model_args["in_channels"])
+    dummy = torch.zeros(1, channels, h, w)
     buf = tempfile.SpooledTemporaryFile()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tracer warnings about shape arithmetic in forward()
@@ -68,15 +70,15 @@ def export_onnx(checkpoint_path: str | Path, onnx_path: str | Path | None = None
     onnx.checker.check_model(proto)
     data = proto.SerializeToString()
     if verify:
-        _verify(data, ckpt.model, h, w)
+        _verify(data, ckpt.model, channels, h, w)
     return atomic_write_bytes(out, data)
 
 
-def _verify(model_bytes: bytes, model: torch.nn.Module, h: int, w: int) -> None:
+def _verify(model_bytes: bytes, model: torch.nn.Module, channels: int, h: int, w: int) -> None:
     import onnxruntime as ort
 
     sess = ort.InferenceSession(model_bytes, providers=["CPUExecutionProvider"])
-    x = torch.randn(2, 2, h, w, generator=torch.Generator().manual_seed(0))
+    x = torch.randn(2, channels, h, w, generator=torch.Generator().manual_seed(0))
     with torch.inference_mode():
         ref = model(x).argmax(1).numpy()
     got = sess.run(["logits"], {"input": x.numpy()})[0].argmax(1)

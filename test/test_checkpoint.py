@@ -12,9 +12,10 @@ import torch
 from task_outcome_ros import checkpoint
 from task_outcome_ros.checkpoint import CheckpointError
 from task_outcome_ros.labels import label_table
-from task_outcome_ros.model import DEFAULT_NORMALISATION, OutcomeFCN
+from task_outcome_ros.model import DEFAULT_NORMALISATION, IN_CHANNELS, OutcomeFCN
 
-ARGS = {"in_channels": 2, "num_classes": 5, "base_width": 4, "levels": 2, "decoder_convs": 1}
+ARGS = {"in_channels": IN_CHANNELS, "num_classes": 5, "base_width": 4, "levels": 2,
+        "decoder_convs": 1}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,7 +31,7 @@ def _save(path: Path, **overrides) -> OutcomeFCN:
     # Non-trivial BN statistics, so a lost buffer would change the outputs.
     model.train()
     with torch.no_grad():
-        model(torch.randn(2, 2, 24, 32))
+        model(torch.randn(2, IN_CHANNELS, 24, 32))
     kwargs = dict(model_args=ARGS, input_size=(32, 24), normalisation=DEFAULT_NORMALISATION,
                   train_config=_TrainConfig(), metrics={"miou": np.float32(0.5), "epoch": 3})
     kwargs.update(overrides)
@@ -50,7 +51,7 @@ def test_round_trip_rebuilds_identical_model(tmp_path: Path) -> None:
                   .state_dict(), extra={"note": "x"})
     loaded = checkpoint.load(path)
     assert not loaded.model.training
-    x = torch.randn(1, 2, 24, 32)
+    x = torch.randn(1, IN_CHANNELS, 24, 32)
     with torch.inference_mode():
         assert torch.equal(model(x), loaded.model(x))
     assert loaded.model_args == ARGS

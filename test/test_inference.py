@@ -24,9 +24,10 @@ from task_outcome_ros.labels import (
     SUCCESS,
     outcomes_present,
 )
-from task_outcome_ros.model import DEFAULT_NORMALISATION, OutcomeFCN, preprocess
+from task_outcome_ros.model import DEFAULT_NORMALISATION, IN_CHANNELS, OutcomeFCN, preprocess
 
-ARGS = {"in_channels": 2, "num_classes": 5, "base_width": 4, "levels": 3, "decoder_convs": 1}
+ARGS = {"in_channels": IN_CHANNELS, "num_classes": 5, "base_width": 4, "levels": 3,
+        "decoder_convs": 1}
 INPUT_SIZE = (160, 120)
 
 

@@ -117,6 +117,8 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--input-size", type=int, nargs=2, metavar=("W", "H"), default=None,
                    help="working resolution (default 160 120)")
     p.add_argument("--max-minutes", type=float, default=None, help="training time budget")
+    p.add_argument("--ema-decay", type=float, default=None,
+                   help="per-step decay of the weight average that is validated (0 = off)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None)
     p.add_argument("--amp", choices=("auto", "bf16", "off"), default=None)
     p.add_argument("--train-seed", type=non_negative_int, default=None)
@@ -130,7 +132,7 @@ def resolve_train_config(args: argparse.Namespace):
 
     fields = {"epochs": "epochs", "batch_size": "batch_size", "lr": "lr",
               "base_width": "base_width", "max_minutes": "max_minutes", "device": "device",
-              "amp": "amp", "seed": "train_seed"}
+              "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
     if args.input_size is not None:
         overrides["input_size"] = tuple(args.input_size)

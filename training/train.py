@@ -1,7 +1,8 @@
 """Stage 5: train the outcome FCN on the cached working-size dataset.
 
-Class-weighted cross-entropy ignoring 255 (no depth), AdamW with warm-up + cosine decay,
-label-honest augmentation (mirror, small shifts, depth scale, re-drawn axial noise and
+Class-weighted cross-entropy ignoring 255 (no depth), AdamW with warm-up + cosine decay, an
+exponential moving average (EMA) of the weights that is validated and shipped, label-honest
+augmentation (mirror, small shifts, depth scale, re-drawn axial noise and
 dropout: all leave labels where the objects are), mixed precision on CUDA, resumable
 self-describing checkpoints after every epoch, a training-curve plot.
 
@@ -91,6 +92,33 @@ def lr_at(step: int, total: int, base: float) -> float:
     return base * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
 
 
+class WeightAverage:
+    """EMA of the weights and BatchNorm buffers: ``avg = d * avg + (1 - d) * current``.
+
+    The decay ramps up as min(decay, (1 + n) / (10 + n)) over the first updates so the average
+    does not drag the random initial weights along; ``decay = 0`` keeps a plain copy.
+    """
+
+    def __init__(self, model: torch.nn.Module, decay: float) -> None:
+        import copy
+
+        self.decay, self.updates = decay, 0
+        self.module = copy.deepcopy(model).eval()
+        for p in self.module.parameters():
+            p.requires_grad_(False)
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module) -> None:
+        self.updates += 1
+        d = min(self.decay, (1 + self.updates) / (10 + self.updates))
+        current = model.state_dict()
+        for name, avg in self.module.state_dict().items():
+            if avg.dtype.is_floating_point:
+                avg.mul_(d).add_(current[name].detach(), alpha=1 - d)
+            else:  # BatchNorm's num_batches_tracked
+                avg.copy_(current[name])
+
+
 def presence_from_counts(counts: np.ndarray, small_pixels: int) -> np.ndarray:
     """(N, 5) working-size class counts -> (N, 3) presence at the reference resolution."""
     scaled = counts * (REFERENCE_PIXELS / small_pixels)
@@ -153,6 +181,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
 
     model = build_model(cfg.model_args).to(device)
     optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    average = WeightAverage(model, cfg.ema_decay)
     use_cuda_amp = device.type == "cuda" and cfg.amp == "auto"
     scaler = torch.amp.GradScaler("cuda") if use_cuda_amp else None
     amp_dtype = torch.float16 if use_cuda_amp else torch.bfloat16
@@ -170,8 +199,12 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         if state.train_config.get("train") != json.loads(json.dumps(to_dict(cfg))):
             raise ValueError(f"{last_path} was trained with another config; use a new --out "
                              "or delete it to start over")
-        model.load_state_dict(state.model.state_dict())
-        optim.load_state_dict(state.optimizer_state)
+        # last.pt's model is the average (what validation saw); the raw weights, the optimizer
+        # and the average's update count live in its training state.
+        average.module.load_state_dict(state.model.state_dict())
+        model.load_state_dict(state.optimizer_state["raw_weights"])
+        optim.load_state_dict(state.optimizer_state["optimizer"])
+        average.updates = int(state.optimizer_state["average_updates"])
         history = state.extra["history"]
         start_epoch = len(history)
         best_key = tuple(state.extra["best_key"])
@@ -208,9 +241,10 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
             else:
                 loss.backward()
                 optim.step()
+            average.update(model)
             losses.append(float(loss))
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
-        metrics = validate(model, val_arrays, val_truth, device, norm, 64)
+        metrics = validate(average.module, val_arrays, val_truth, device, norm, 64)
         entry = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)),
                  "epoch_s": round(time.perf_counter() - t_epoch, 1), **metrics}
         history.append(entry)
@@ -225,8 +259,10 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
                       metrics=metrics)
         if key > best_key:
             best_key = key
-            checkpoint.save(best_path, model, **common, extra=extra)
-        checkpoint.save(last_path, model, **common, optimizer_state=optim.state_dict(),
+            checkpoint.save(best_path, average.module, **common, extra=extra)
+        training_state = {"optimizer": optim.state_dict(), "raw_weights": model.state_dict(),
+                          "average_updates": average.updates}
+        checkpoint.save(last_path, average.module, **common, optimizer_state=training_state,
                         extra=extra)
         save_json(out / "history.json", history)
         plot_curves(out / "training_curves.png", history)

@@ -1,0 +1,73 @@
+"""Height above the floor (floor.py), the network's third channel, on analytic scenes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from task_outcome_ros.floor import FOCAL_OVER_WIDTH, backproject, height_above_floor
+from task_outcome_ros.model import DEFAULT_NORMALISATION, input_channels, preprocess
+
+
+def _tilted_scene(h: int = 120, w: int = 160, camera_height: float = 1.5,
+                  elevation_deg: float = 50.0, box_height: float = 0.3) -> np.ndarray:
+    """Depth of a floor seen from ``camera_height`` m, pitched down ``elevation_deg``, with a
+    flat-topped box (top at ``box_height`` m) filling a patch in the middle of the image."""
+    a = math.radians(elevation_deg)
+    # Floor normal (towards the camera) in the optical frame (y down, z forward).
+    normal = np.array([0.0, -math.cos(a), -math.sin(a)])
+    f = FOCAL_OVER_WIDTH * w
+    u = (np.arange(w) - (w - 1) / 2) / f
+    v = (np.arange(h) - (h - 1) / 2) / f
+    rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((h, w))), -1)
+    along = rays @ normal                       # < 0: the ray goes down towards the floor
+    plane_height = np.zeros((h, w))
+    plane_height[h // 3: h // 2, w // 3: w // 2] = box_height
+    return ((plane_height - camera_height) / along).astype(np.float32)
+
+
+def test_floor_and_box_heights_are_recovered() -> None:
+    depth = torch.from_numpy(_tilted_scene())[None]
+    valid = torch.ones_like(depth, dtype=torch.bool)
+    valid[0, :5, :7] = False                    # some holes
+    height = height_above_floor(depth, valid)[0].numpy()
+    box = np.zeros(height.shape, bool)
+    box[40:60, 53:80] = True
+    assert abs(np.median(height[box]) - 0.3) < 0.005
+    assert np.abs(height[~box & valid[0].numpy()]).max() < 0.005
+    assert np.all(height[~valid[0].numpy()] == 0)
+
+
+def test_heights_are_deterministic_and_batch_independent() -> None:
+    a = torch.from_numpy(_tilted_scene(elevation_deg=45))
+    b = torch.from_numpy(_tilted_scene(elevation_deg=62, box_height=0.1))
+    both = torch.stack([a, b])
+    valid = torch.ones_like(both, dtype=torch.bool)
+    together = height_above_floor(both, valid)
+    alone = height_above_floor(b[None], valid[1:])
+    torch.testing.assert_close(together[1:], alone)
+    torch.testing.assert_close(height_above_floor(both, valid), together)
+
+
+def test_all_invalid_image_gives_zero_heights() -> None:
+    depth = torch.zeros(1, 12, 16)
+    height = height_above_floor(depth, torch.zeros_like(depth, dtype=torch.bool))
+    assert torch.all(height == 0) and torch.isfinite(height).all()
+
+
+def test_backproject_centre_ray_is_the_optical_axis() -> None:
+    points = backproject(torch.full((1, 3, 5), 2.0))
+    torch.testing.assert_close(points[0, 1, 2], torch.tensor([0.0, 0.0, 2.0]))
+
+
+def test_preprocess_third_channel_is_scaled_height() -> None:
+    assert input_channels(DEFAULT_NORMALISATION) == 3
+    x = preprocess(_tilted_scene(h=480, w=640), (160, 120))
+    box_height = np.median(x[2, 45:55, 60:75]) * DEFAULT_NORMALISATION["height_scale_m"]
+    assert abs(box_height - 0.3) < 0.01
+    legacy = {k: v for k, v in DEFAULT_NORMALISATION.items()
+              if k not in ("height_scale_m", "focal_over_width")}
+    assert input_channels(legacy) == 2
+    assert preprocess(_tilted_scene(), (16, 12), legacy).shape[0] == 2
