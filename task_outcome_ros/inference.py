@@ -29,7 +29,7 @@ from task_outcome_ros.labels import (
     OUTCOME_NAMES,
     PRESENCE_MIN_PIXELS,
     outcome_pixel_counts,
-    outcomes_present,
+    presence_from_counts,
     presence_threshold,
 )
 from task_outcome_ros.model import preprocess, preprocess_batch, preprocess_sanitized
@@ -231,7 +231,7 @@ class OutcomeSegmenter:
             labels[~np.isfinite(depth)] = BACKGROUND
         threshold = presence_threshold(h, w, self.presence_min_pixels)
         counts = outcome_pixel_counts(labels)
-        present = outcomes_present(labels, self.presence_min_pixels)
+        present = presence_from_counts(counts, threshold)  # one pass over the image, not two
         objects = {name: count_objects(labels, OUTCOME_IDS[name], threshold, depth)
                    if present[name] else [] for name in OUTCOME_NAMES}
         return OutcomeResult(labels=labels, present=present, pixel_counts=counts,

@@ -63,8 +63,12 @@ def outcomes_present(labels: np.ndarray, min_pixels: int = PRESENCE_MIN_PIXELS,
                      ) -> dict[str, bool]:
     """The paper's presence decision for each outcome (threshold scaled to the image size)."""
     h, w = labels.shape[:2]
-    threshold = presence_threshold(h, w, min_pixels)
-    return {name: n >= threshold for name, n in outcome_pixel_counts(labels).items()}
+    return presence_from_counts(outcome_pixel_counts(labels), presence_threshold(h, w, min_pixels))
+
+
+def presence_from_counts(counts: dict[str, int], threshold: int) -> dict[str, bool]:
+    """The presence rule on per-outcome pixel counts already made (``outcome_pixel_counts``)."""
+    return {name: counts[name] >= threshold for name in OUTCOME_NAMES}
 
 
 def colourise(labels: np.ndarray) -> np.ndarray:

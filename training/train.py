@@ -242,7 +242,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
                 loss.backward()
                 optim.step()
             average.update(model)
-            losses.append(float(loss))
+            losses.append(loss.item())
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
         metrics = validate(average.module, val_arrays, val_truth, device, norm, 64)
         entry = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)),
