@@ -290,8 +290,9 @@ def main() -> None:
                  "segment_cpu_ms = process CPU time of that call, all threads (ORT worker "
                  "threads spin-wait, so it can exceed the wall time x 1); "
                  "breakdown from a staged replica on the same frame (network includes argmax); "
-                 "configurations interleaved in rotating blocks; machine shared with a "
-                 "training job, so absolute figures are noisy, ratios within the run less so"),
+                 "configurations interleaved in rotating blocks; the machine is shared (see "
+                 "load_average_1_5_15), so absolute figures are noisy, ratios within the run "
+                 "less so"),
     }, command)
 
 
