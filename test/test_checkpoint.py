@@ -159,3 +159,27 @@ def test_cuda_device_without_cuda(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="CUDA is not available"):
         checkpoint.load(path, device="cuda")
     assert checkpoint.load(path, device="auto").model is not None
+
+
+def test_channel_count_must_match_the_normalisation(tmp_path: Path) -> None:
+    path = tmp_path / "m.pt"
+    _save(path)
+    legacy = {k: v for k, v in DEFAULT_NORMALISATION.items()
+              if k not in ("height_scale_m", "focal_over_width")}
+    _rewrite(path, normalisation=legacy)  # 2-channel preprocessing for a 3-channel net
+    with pytest.raises(CheckpointError, match="input channels"):
+        checkpoint.load(path)
+
+
+def test_two_channel_checkpoint_from_before_heights_still_segments(tmp_path: Path) -> None:
+    from task_outcome_ros.inference import OutcomeSegmenter
+
+    legacy = {k: v for k, v in DEFAULT_NORMALISATION.items()
+              if k not in ("height_scale_m", "focal_over_width")}
+    path = tmp_path / "legacy.pt"
+    torch.manual_seed(0)
+    model = OutcomeFCN(**{**ARGS, "in_channels": 2})
+    checkpoint.save(path, model, model_args={**ARGS, "in_channels": 2}, input_size=(32, 24),
+                    normalisation=legacy, train_config={}, metrics={})
+    result = OutcomeSegmenter(path, backend="torch").segment(np.full((48, 64), 2.0, np.float32))
+    assert result.labels.shape == (48, 64)

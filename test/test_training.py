@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from task_outcome_ros.labels import (
     CONTAINER,
@@ -136,3 +137,23 @@ def test_shipped_checkpoint_labels_a_fresh_scene_sensibly(tmp_path):
     world.close()
     assert agree >= 6, f"only {agree}/8 images with all outcomes right"
     assert np.mean(container_iou) > 0.8
+
+
+def test_weight_average_follows_the_ema_formula():
+    from training.train import WeightAverage
+
+    torch.manual_seed(0)
+    model = torch.nn.Sequential(torch.nn.Conv2d(1, 2, 1), torch.nn.BatchNorm2d(2))
+    average = WeightAverage(model, decay=0.9)
+    start = model[0].weight.detach().clone()
+    with torch.no_grad():
+        model[0].weight.add_(1.0)
+    average.update(model)               # first update: decay ramps to min(0.9, 2 / 11)
+    d = 2 / 11
+    torch.testing.assert_close(average.module[0].weight, d * start + (1 - d) * (start + 1.0))
+    assert not any(p.requires_grad for p in average.module.parameters())
+    copy = WeightAverage(model, decay=0.0)
+    with torch.no_grad():
+        model[0].weight.mul_(3.0)
+    copy.update(model)                  # decay 0: a plain copy of the current weights
+    torch.testing.assert_close(copy.module[0].weight, model[0].weight)
