@@ -119,7 +119,7 @@ class WeightAverage:
                 avg.copy_(current[name])
 
 
-def presence_from_counts(counts: np.ndarray, small_pixels: int) -> np.ndarray:
+def working_size_presence(counts: np.ndarray, small_pixels: int) -> np.ndarray:
     """(N, 5) working-size class counts -> (N, 3) presence at the reference resolution."""
     scaled = counts * (REFERENCE_PIXELS / small_pixels)
     ids = [OUTCOME_IDS[name] for name in OUTCOME_NAMES]
@@ -146,7 +146,7 @@ def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch
         conf += np.bincount(truth[keep].astype(np.int64) * NUM_CLASSES + pred[keep],
                             minlength=NUM_CLASSES ** 2).reshape(NUM_CLASSES, NUM_CLASSES)
     small = arrays["labels"].shape[1] * arrays["labels"].shape[2]
-    pred_present = presence_from_counts(counts, small)
+    pred_present = working_size_presence(counts, small)
     iou = np.diag(conf) / np.maximum(1, conf.sum(0) + conf.sum(1) - np.diag(conf))
     return {"image_all_correct": float(np.mean(np.all(pred_present == truth_present, axis=1))),
             "pixel_miou": float(iou.mean()), "iou": iou.round(4).tolist()}
