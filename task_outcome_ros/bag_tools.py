@@ -336,9 +336,6 @@ def score(ground_truth: dict, predicted: dict[int, dict[str, bool] | None],
         "n_missing": n_missing,
         "presence_min_pixels": presence_min_pixels,
     }
-    report["presence_precision"] = {n_: report[n_]["presence_precision"]
-                                    for n_ in L.OUTCOME_NAMES}
-    report["presence_recall"] = {n_: report[n_]["presence_recall"] for n_ in L.OUTCOME_NAMES}
     report["mistakes"] = mistakes
     return report
 

@@ -81,7 +81,8 @@ def colourise(labels: np.ndarray) -> np.ndarray:
 
 def presence_scores(truth: np.ndarray, pred: np.ndarray) -> dict:
     """The paper's image-level metric over N images: (N, 3) boolean presence arrays, columns in
-    OUTCOME_NAMES order -> all-correct rate and per-outcome presence precision/recall."""
+    OUTCOME_NAMES order -> all-correct rate, per-outcome counts and presence precision/recall,
+    and the two rates again as ``presence_precision`` / ``presence_recall`` {outcome: rate}."""
     truth, pred = np.asarray(truth, bool), np.asarray(pred, bool)
     out: dict = {"image_all_correct": float(np.mean(np.all(truth == pred, axis=1)))
                  if len(truth) else 0.0}
@@ -93,4 +94,6 @@ def presence_scores(truth: np.ndarray, pred: np.ndarray) -> dict:
                      "presence_recall": tp / (tp + fn) if tp + fn else 1.0,
                      "support": int(truth[:, k].sum()), "false_positives": fp,
                      "false_negatives": fn}
+    for rate in ("presence_precision", "presence_recall"):
+        out[rate] = {name: out[name][rate] for name in OUTCOME_NAMES}
     return out

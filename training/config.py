@@ -300,7 +300,9 @@ class TrainConfig:
 
     @property
     def model_args(self) -> dict:
+        from task_outcome_ros.labels import NUM_CLASSES
         from task_outcome_ros.model import IN_CHANNELS
 
-        return {"in_channels": IN_CHANNELS, "num_classes": 5, "base_width": self.base_width,
-                "levels": self.levels, "decoder_convs": self.decoder_convs}
+        return {"in_channels": IN_CHANNELS, "num_classes": NUM_CLASSES,
+                "base_width": self.base_width, "levels": self.levels,
+                "decoder_convs": self.decoder_convs}

@@ -68,7 +68,6 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         "model": str(seg.model_path),
         "backend": seg.backend,
         **presence_scores(truth_arr, pred_arr),
-        "presence_recall": {n: None for n in OUTCOME_NAMES},
         "pixel_miou": float(iou.mean()),
         "iou": {CLASS_NAMES[c]: round(float(iou[c]), 5) for c in range(NUM_CLASSES)},
         "presence_min_pixels": presence_min_pixels,
@@ -78,8 +77,6 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         "confusion": conf.tolist(),
         "mistakes": [r["episode"] for r in rows if not r["correct"]],
     }
-    report["presence_recall"] = {n: report[n]["presence_recall"] for n in OUTCOME_NAMES}
-    report["presence_precision"] = {n: report[n]["presence_precision"] for n in OUTCOME_NAMES}
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_json(out_dir / "eval.json", report)

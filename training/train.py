@@ -29,6 +29,7 @@ from tqdm import tqdm
 from task_outcome_ros import checkpoint
 from task_outcome_ros.checkpoint import resolve_device
 from task_outcome_ros.labels import (
+    BACKGROUND,
     IGNORE,
     NUM_CLASSES,
     OUTCOME_IDS,
@@ -138,7 +139,7 @@ def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch
         depth = torch.from_numpy(arrays["depth"][s:s + batch_size].astype(np.float32))
         valid = torch.from_numpy(arrays["valid"][s:s + batch_size].astype(np.float32))
         pred = model(network_input(depth, valid, norm).to(device)).argmax(1).cpu().numpy()
-        pred[valid.numpy() == 0] = 0  # as inference does: no depth -> background
+        pred[valid.numpy() == 0] = BACKGROUND  # as inference does: no depth -> background
         truth = arrays["labels"][s:s + batch_size]
         for c in range(NUM_CLASSES):
             counts[s:s + len(pred), c] = (pred == c).reshape(len(pred), -1).sum(1)
