@@ -62,6 +62,7 @@ class _ParamSpec:
     description: str
     read_only: bool
     hint: str  # what a valid value looks like, for the FATAL message
+    value_range: tuple[Any, Any] | None = None  # inclusive; int or float like the default
 
 
 PARAMS: dict[str, _ParamSpec] = {
@@ -77,18 +78,18 @@ PARAMS: dict[str, _ParamSpec] = {
     "presence_min_pixels": _ParamSpec(
         L.PRESENCE_MIN_PIXELS,
         "Pixels an outcome needs to count as present at 640x480 (scaled with image area).",
-        True, "an integer >= 1 (default 50)"),
+        True, "an integer >= 1 (default 50)", (1, 1_000_000)),
     "threads": _ParamSpec(
         1, "CPU threads for inference (torch and onnxruntime). 1 is the measured best on a "
            "2-core machine shared with other work (bench/inference.py).",
-        True, "an integer >= 1 (default 1)"),
+        True, "an integer >= 1 (default 1)", (1, 256)),
     "publish_overlay": _ParamSpec(
         True, "Publish outcome/overlay (rgb8 colourised depth with the labels blended in).",
         False, "true or false"),
     "overlay_alpha": _ParamSpec(
         R.DEFAULT_OVERLAY_ALPHA,
         "Weight of the label colours in outcome/overlay, 0 (depth only) to 1 (labels only).",
-        False, "a floating-point number in [0.0, 1.0], e.g. 0.5"),
+        False, "a floating-point number in [0.0, 1.0], e.g. 0.5", (0.0, 1.0)),
     "publish_markers": _ParamSpec(
         True, "Publish outcome/markers: a sphere at each failure object's 3-D centroid "
               "(needs depth/camera_info).",
@@ -154,12 +155,13 @@ class OutcomeNode(Node):
             desc = ParameterDescriptor(name=name, description=spec.description,
                                        read_only=spec.read_only,
                                        additional_constraints=f"valid: {spec.hint}")
-            if name in ("presence_min_pixels", "threads"):
-                top = 1_000_000 if name == "presence_min_pixels" else 256
-                desc.integer_range = [IntegerRange(from_value=1, to_value=top, step=1)]
-            elif name == "overlay_alpha":
-                desc.floating_point_range = [
-                    FloatingPointRange(from_value=0.0, to_value=1.0, step=0.0)]
+            if spec.value_range is not None:
+                lo, hi = spec.value_range
+                if isinstance(spec.default, int):
+                    desc.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
+                else:
+                    desc.floating_point_range = [
+                        FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
             try:
                 values[name] = self.declare_parameter(name, spec.default, desc).value
             except Exception as exc:  # rclpy raises several types for wrong type / range
@@ -347,6 +349,16 @@ def _interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
+def interrupt_on_signals() -> None:
+    """SIGINT and SIGTERM raise KeyboardInterrupt (also when started with SIGINT ignored).
+
+    For processes that init rclpy with SignalHandlerOptions.NO: rclpy's own handler shuts the
+    context down at once, under a publish in progress (seen: a segfault at exit).
+    """
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _interrupt)
+
+
 def main(args: list[str] | None = None) -> int:
     """Console script ``outcome_node``; returns the process exit code."""
     try:
@@ -354,8 +366,7 @@ def main(args: list[str] | None = None) -> int:
         # while the worker thread may be publishing (seen: a segfault at exit). Raising
         # KeyboardInterrupt instead lets main stop the worker first, then shut down.
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-        signal.signal(signal.SIGINT, _interrupt)
-        signal.signal(signal.SIGTERM, _interrupt)
+        interrupt_on_signals()
     except Exception as exc:  # malformed --ros-args: rcl's message says which
         print(f"[FATAL] [{NODE_NAME}]: cannot start: {_exc_reason(exc)}", file=sys.stderr)
         return 2

@@ -14,7 +14,6 @@ so the package (and this module) still imports where ROS is not installed.
 from __future__ import annotations
 
 import argparse
-import signal
 import statistics
 import sys
 import time
@@ -122,10 +121,6 @@ class Replayer:
         return 0 if self.info_conn is None else self.published[self.info_conn.id]
 
 
-def _interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt
-
-
 def main(argv: list[str] | None = None) -> int:
     """Console script ``outcome_replay``; returns the process exit code."""
     import rclpy
@@ -133,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import remove_ros_args
 
-    from task_outcome_ros.node import QOS_CHOICES, subscription_qos
+    from task_outcome_ros.node import QOS_CHOICES, interrupt_on_signals, subscription_qos
 
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser(QOS_CHOICES).parse_args(remove_ros_args([NODE_NAME, *argv])[1:])
@@ -152,8 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{NODE_NAME}: error: cannot start: {exc}", file=sys.stderr)
         reader.close()
         return 2
-    for sig in (signal.SIGINT, signal.SIGTERM):  # also when started with SIGINT ignored
-        signal.signal(sig, _interrupt)
+    interrupt_on_signals()
     node = rclpy.create_node(NODE_NAME, namespace=args.namespace or None)
     log = node.get_logger()
     code = 0
