@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from task_outcome_ros import bag_tools as B
+from task_outcome_ros import outcome_report as R
 from task_outcome_ros.labels import OUTCOME_NAMES
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
@@ -86,11 +87,9 @@ class Recorder:
     """Subscribes to the node's outputs and keeps them by input stamp (rclpy, in-process)."""
 
     def __init__(self, env: dict[str, str]):
-        os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")
-                           if k in env})
-        for key in ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE"):
-            if key in env:
-                os.environ[key] = env[key]
+        os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE",
+                                               "FASTRTPS_DEFAULT_PROFILES_FILE",
+                                               "FASTDDS_DEFAULT_PROFILES_FILE") if k in env})
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
@@ -156,7 +155,7 @@ def write_output_bag(path: Path, received: dict, storage: str = "mcap") -> None:
 def status_present(msg) -> dict[str, bool] | None:
     """Outcomes present according to a DiagnosticArray from the node; None for ERROR."""
     status = msg.status[0]
-    if status.level == 2:
+    if status.level == R.ERROR:
         return None
     values = {kv.key: kv.value for kv in status.values}
     return {name: values.get(f"{name}.present", "false") == "true" for name in OUTCOME_NAMES}
