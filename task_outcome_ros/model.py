@@ -42,7 +42,7 @@ _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
 DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution
 DEFAULT_MODEL_ARGS: dict[str, Any] = {
     "in_channels": IN_CHANNELS, "num_classes": NUM_CLASSES, "base_width": 8, "levels": 5,
-    "decoder_convs": 1}
+    "decoder_convs": 1, "max_width": 128}
 
 
 def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
@@ -171,21 +171,26 @@ def _conv_block(c_in: int, c_out: int, n_convs: int = 2) -> nn.Sequential:
 class OutcomeFCN(nn.Module):
     """U-Net-style FCN: depth + validity in, ``num_classes`` logits per pixel out.
 
-    Widths double per level: base_width * 2**i for i in 0..levels; encoder blocks have two
-    convs, decoder blocks ``decoder_convs`` (one keeps the net inside the CPU budget). The
-    input is zero-padded
+    Widths double per level, base_width * 2**i for i in 0..levels, up to ``max_width`` (None:
+    no cap). The cap is for the deepest levels, which hold most of the weights but, at a few
+    pixels across, almost none of the compute. Encoder blocks have two convs, decoder blocks
+    ``decoder_convs`` (one keeps the net inside the CPU budget). The input is zero-padded
     (zero = invalid) to a multiple of 2**levels and the logits are cropped back.
     """
 
     def __init__(self, in_channels: int = IN_CHANNELS, num_classes: int = NUM_CLASSES,
-                 base_width: int = 8, levels: int = 4, decoder_convs: int = 1) -> None:
+                 base_width: int = 8, levels: int = 4, decoder_convs: int = 1,
+                 max_width: int | None = None) -> None:
         super().__init__()
-        if not (1 <= levels <= 6 and 2 <= base_width <= 256 and 1 <= decoder_convs <= 2):
-            raise ValueError(f"need 1 <= levels <= 6, 2 <= base_width <= 256 and "
-                             f"decoder_convs in (1, 2), got levels={levels} "
-                             f"base_width={base_width} decoder_convs={decoder_convs}")
+        if not (1 <= levels <= 6 and 2 <= base_width <= 256 and 1 <= decoder_convs <= 2
+                and (max_width is None or max_width >= base_width)):
+            raise ValueError(f"need 1 <= levels <= 6, 2 <= base_width <= 256, decoder_convs "
+                             f"in (1, 2) and max_width >= base_width, got levels={levels} "
+                             f"base_width={base_width} decoder_convs={decoder_convs} "
+                             f"max_width={max_width}")
         self.levels = levels
-        widths = [base_width * 2 ** i for i in range(levels + 1)]
+        cap = max_width or base_width * 2 ** levels
+        widths = [min(base_width * 2 ** i, cap) for i in range(levels + 1)]
         self.stem = _conv_block(in_channels, widths[0])
         self.down = nn.ModuleList(_conv_block(widths[i], widths[i + 1]) for i in range(levels))
         self.up = nn.ModuleList(

@@ -115,3 +115,20 @@ def test_model_overfits_tiny_batch() -> None:
     objects = y > 0
     assert (pred[objects] == y[objects]).float().mean() > 0.9
     assert (pred == SUCCESS).any() or not (y == SUCCESS).any()
+
+
+def test_training_defaults_build_the_default_architecture():
+    """The architecture is written in two places (model.py for inference-side tools, TrainConfig
+    for training, which must not import torch at config time): they must agree."""
+    from training.config import TrainConfig
+
+    assert TrainConfig().model_args == DEFAULT_MODEL_ARGS
+
+
+def test_max_width_caps_the_deep_levels_only():
+    capped = build_model({**DEFAULT_MODEL_ARGS, "levels": 5, "base_width": 8, "max_width": 32})
+    assert [m.out_channels for m in (capped.down[i][0] for i in range(5))] == [16, 32, 32, 32, 32]
+    x = torch.zeros(1, DEFAULT_MODEL_ARGS["in_channels"], 37, 53)
+    assert capped(x).shape == (1, DEFAULT_MODEL_ARGS["num_classes"], 37, 53)
+    with pytest.raises(ValueError, match="max_width"):
+        build_model({**DEFAULT_MODEL_ARGS, "base_width": 16, "max_width": 8})

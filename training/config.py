@@ -260,6 +260,8 @@ class TrainConfig:
     input_size: tuple[int, int] = (160, 120)          # (W, H) working resolution
     base_width: int = 8
     levels: int = 5                       # a 5th stage: whole-scene context for ~1 ms more
+    # Width cap: uncapped, the 5th stage's 256 channels held 3/4 of the weights (7 MB file).
+    max_width: int = 128
     decoder_convs: int = 1
     epochs: int = 12
     batch_size: int = 32
@@ -284,6 +286,7 @@ class TrainConfig:
         _check_int(o, "base_width", self.base_width, 2, 256)
         _check_int(o, "levels", self.levels, 1, 6)
         _check_int(o, "decoder_convs", self.decoder_convs, 1, 2)
+        _check_int(o, "max_width", self.max_width, self.base_width, 4096)
         _check_int(o, "epochs", self.epochs, 1, 10_000)
         _check_int(o, "batch_size", self.batch_size, 1, 4096)
         _check_range(o, "lr", self.lr, 1e-6, 1.0)
@@ -305,4 +308,4 @@ class TrainConfig:
 
         return {"in_channels": IN_CHANNELS, "num_classes": NUM_CLASSES,
                 "base_width": self.base_width, "levels": self.levels,
-                "decoder_convs": self.decoder_convs}
+                "decoder_convs": self.decoder_convs, "max_width": self.max_width}
