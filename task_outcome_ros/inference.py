@@ -3,8 +3,8 @@
 Training, evaluation and the ROS node all go through ``preprocess`` (model.py) and
 ``OutcomeSegmenter.segment`` / ``predict_labels`` here, so what is measured offline is what
 runs on the robot. The network runs at the checkpoint's working size; its argmax labels are
-resized back to the input size (nearest) and the presence rule of labels.py is applied to
-the full-size label image.
+cleaned of small outcome fragments (fragments.py), resized back to the input size (nearest)
+and the presence rule of labels.py is applied to the full-size label image.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from torch import nn
 
 from task_outcome_ros.checkpoint import CheckpointError, LoadedCheckpoint, load, resolve_device
 from task_outcome_ros.depth import sanitize_depth
+from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS, absorb_fragments, fragment_threshold
 from task_outcome_ros.labels import (
     BACKGROUND,
     CLASS_NAMES,
@@ -134,17 +135,20 @@ class OutcomeSegmenter:
     have been exported from this very checkpoint) or 'auto' (ONNX when that holds and the
     device is the CPU, else torch). ``backend_reason`` says why a backend was chosen.
     ``num_threads`` (optional) sets torch's global intra-op threads and onnxruntime's.
+    ``fragment_max_pixels`` (at 640 x 480; 0 = off): outcome fragments smaller than this on
+    another outcome's object take that outcome (fragments.py).
     """
 
     def __init__(self, model_path: str | Path | None = None, device: str = "cpu",
                  presence_min_pixels: int = PRESENCE_MIN_PIXELS, backend: str = "auto",
-                 num_threads: int | None = None) -> None:
+                 num_threads: int | None = None,
+                 fragment_max_pixels: int = FRAGMENT_MAX_PIXELS) -> None:
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if isinstance(presence_min_pixels, bool) or not isinstance(presence_min_pixels, int) \
-                or presence_min_pixels < 1:
-            raise ValueError(f"presence_min_pixels must be an int >= 1, "
-                             f"got {presence_min_pixels!r}")
+        for name, value, low in (("presence_min_pixels", presence_min_pixels, 1),
+                                 ("fragment_max_pixels", fragment_max_pixels, 0)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
         if model_path is None:
             path = default_model_path()
             if not path.is_file():
@@ -160,6 +164,7 @@ class OutcomeSegmenter:
         self.input_size = self.checkpoint.input_size
         self.normalisation = self.checkpoint.normalisation
         self.presence_min_pixels = presence_min_pixels
+        self.fragment_max_pixels = fragment_max_pixels
         self._session = None
         self.backend, self.backend_reason = self._choose_backend(backend, num_threads)
 
@@ -223,6 +228,8 @@ class OutcomeSegmenter:
         else:
             small = self._predict_small(
                 preprocess_sanitized(depth, self.input_size, self.normalisation))
+            small = absorb_fragments(small, fragment_threshold(*small.shape,
+                                                               self.fragment_max_pixels))
             labels = small if small.shape == (h, w) else cv2.resize(
                 small, (w, h), interpolation=cv2.INTER_NEAREST)
             # No measurement, no claim: the training labels of pixels without depth are

@@ -100,6 +100,12 @@ def test_short_real_training_improves_the_loss_and_evaluates(small_run):
         assert 0.0 <= report[name]["presence_precision"] <= 1.0
         assert 0.0 <= report[name]["presence_recall"] <= 1.0
     assert report["n_images"] == 2   # 5 % of 40 episodes
+    assert report["fragment_max_pixels"] == 256
+    hard = report["hard_cases"]    # tags come from the run's own simulated final states
+    assert set(hard["images"]) == {"near_rim", "across_wall"}
+    assert 0 <= hard["untagged_images"] <= report["n_images"]
+    assert hard["mistakes"]["untagged"] <= len(report["mistakes"])
+    assert sum(hard["mistakes"].values()) >= len(report["mistakes"])  # each one counted
     assert (small_run / "eval" / "confusion.png").exists()
 
     # Resuming a finished run changes nothing; a different config is refused clearly.

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 from task_outcome_ros.cli_args import non_negative_int, positive_int
+from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from training.config import (
     ConfigError,
     DatasetConfig,
@@ -171,10 +172,16 @@ def cmd_evaluate(args) -> None:
     data = args.data or Path(args.out)
     out = args.eval_out or (Path(args.out) / ("eval" if data == Path(args.out)
                                               else f"eval_{Path(data).name}"))
-    report = evaluate(model, data, args.split, out, backend=args.backend)
+    report = evaluate(model, data, args.split, out, backend=args.backend,
+                      fragment_max_pixels=args.fragment_max_pixels)
     print(f"evaluate: {report['n_images']} images of {data} ({args.split}): image all-correct "
           f"{report['image_all_correct']:.4f}, pixel mIoU {report['pixel_miou']:.4f}, "
           f"presence recall {report['presence_recall']} -> {out}/eval.json")
+    hard = report.get("hard_cases")
+    if hard:
+        print(f"  mistakes per hard case {hard['mistakes']}; all-correct on the "
+              f"{hard['untagged_images']} images without one: "
+              f"{hard['untagged_image_all_correct']:.4f}")
 
 
 def add_eval_args(p: argparse.ArgumentParser) -> None:
@@ -184,6 +191,9 @@ def add_eval_args(p: argparse.ArgumentParser) -> None:
                    help="dataset run folder to evaluate on (default: --out)")
     p.add_argument("--split", choices=("val", "train", "all"), default="val")
     p.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto")
+    p.add_argument("--fragment-max-pixels", type=non_negative_int, default=FRAGMENT_MAX_PIXELS,
+                   help="absorb outcome fragments smaller than this (at 640 x 480) into the "
+                        f"object they sit on; 0 = off (default {FRAGMENT_MAX_PIXELS})")
     p.add_argument("--eval-out", type=Path, default=None, help="where eval.json goes")
 
 

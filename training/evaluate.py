@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from task_outcome_ros.inference import OutcomeSegmenter
 from task_outcome_ros.labels import (
     CLASS_NAMES,
@@ -26,6 +27,7 @@ from task_outcome_ros.labels import (
 )
 from training.config import save_json
 from training.dataset import load_manifest
+from training.hard_cases import NEAR_RIM_M, TAGS, episode_tags
 from training.render import read_pair
 
 
@@ -35,8 +37,26 @@ def confusion(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
                        minlength=NUM_CLASSES ** 2).reshape(NUM_CLASSES, NUM_CLASSES)
 
 
+def hard_case_report(rows: list[dict], tags: dict[int, list[str]] | None) -> dict:
+    """Mistakes per hard-case tag (hard_cases.py) and the all-correct rate of untagged images."""
+    if tags is None:
+        return {}
+    untagged = [r for r in rows if not tags[r["episode"]]]
+    mistakes = [r for r in rows if not r["correct"]]
+    return {"hard_cases": {
+        "near_rim_m": NEAR_RIM_M,
+        "images": {t: sum(t in tags[r["episode"]] for r in rows) for t in TAGS},
+        "mistakes": {**{t: sum(t in tags[r["episode"]] for r in mistakes) for t in TAGS},
+                     "untagged": sum(not tags[r["episode"]] for r in mistakes)},
+        "untagged_images": len(untagged),
+        "untagged_image_all_correct": (sum(r["correct"] for r in untagged) / len(untagged)
+                                       if untagged else None),
+    }}
+
+
 def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
              backend: str = "auto", presence_min_pixels: int = PRESENCE_MIN_PIXELS,
+             fragment_max_pixels: int = FRAGMENT_MAX_PIXELS,
              limit: int | None = None, progress: bool = True) -> dict:
     """Evaluate on ``split`` ('val', 'train' or 'all') of the dataset in ``data_dir``."""
     manifest = load_manifest(data_dir)
@@ -45,7 +65,8 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         images = images[:limit]
     if not images:
         raise ValueError(f"{data_dir}: no images in split {split!r}")
-    seg = OutcomeSegmenter(model_path, presence_min_pixels=presence_min_pixels, backend=backend)
+    seg = OutcomeSegmenter(model_path, presence_min_pixels=presence_min_pixels, backend=backend,
+                           fragment_max_pixels=fragment_max_pixels)
     conf = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
     truth_p, pred_p, rows, times = [], [], [], []
     for im in tqdm(images, desc=f"evaluate {split}", disable=not progress, unit="img"):
@@ -72,10 +93,12 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         "iou": {CLASS_NAMES[c]: round(float(iou[c]), 5) for c in range(NUM_CLASSES)},
         "presence_min_pixels": presence_min_pixels,
         "presence_threshold_pixels": presence_threshold(h, w, presence_min_pixels),
+        "fragment_max_pixels": fragment_max_pixels,
         "image_size": [w, h],
         "inference_ms_p50": float(np.percentile(times, 50)),
         "confusion": conf.tolist(),
         "mistakes": [r["episode"] for r in rows if not r["correct"]],
+        **hard_case_report(rows, episode_tags(data_dir, {r["episode"] for r in rows})),
     }
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

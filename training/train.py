@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from task_outcome_ros import checkpoint
 from task_outcome_ros.checkpoint import resolve_device
+from task_outcome_ros.fragments import absorb_fragments, fragment_threshold
 from task_outcome_ros.labels import (
     BACKGROUND,
     IGNORE,
@@ -130,7 +131,8 @@ def working_size_presence(counts: np.ndarray, small_pixels: int) -> np.ndarray:
 @torch.inference_mode()
 def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch_size: int
              ) -> dict:
-    """Image-level all-correct rate and pixel IoU at the working size."""
+    """Image-level all-correct rate and pixel IoU at the working size, after the same
+    fragment absorption as inference."""
     model.eval()
     n = len(arrays["indices"])
     conf = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
@@ -140,6 +142,8 @@ def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch
         valid = torch.from_numpy(arrays["valid"][s:s + batch_size].astype(np.float32))
         pred = model(network_input(depth, valid, norm).to(device)).argmax(1).cpu().numpy()
         pred[valid.numpy() == 0] = BACKGROUND  # as inference does: no depth -> background
+        fragments = fragment_threshold(*pred.shape[1:])
+        pred = np.stack([absorb_fragments(p.astype(np.uint8), fragments) for p in pred])
         truth = arrays["labels"][s:s + batch_size]
         for c in range(NUM_CLASSES):
             counts[s:s + len(pred), c] = (pred == c).reshape(len(pred), -1).sum(1)
