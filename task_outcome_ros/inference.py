@@ -222,12 +222,24 @@ class OutcomeSegmenter:
         """Label one depth image (H x W metres, NaN/0/inf invalid) of any size."""
         t0 = time.perf_counter()
         depth = sanitize_depth(_validate_depth(depth_m))
-        h, w = depth.shape
-        if not np.isfinite(depth).any():
-            labels = np.zeros((h, w), np.uint8)  # defined answer: nothing seen, nothing present
-        else:
+        small = None  # an all-invalid frame: nothing seen, nothing present (a defined answer)
+        if np.isfinite(depth).any():
             small = self._predict_small(
                 preprocess_sanitized(depth, self.input_size, self.normalisation))
+        result = self.postprocess(small, depth)
+        result.inference_ms = (time.perf_counter() - t0) * 1e3
+        return result
+
+    def postprocess(self, small: np.ndarray | None, depth: np.ndarray) -> OutcomeResult:
+        """Everything ``segment`` does after the network (also timed alone by the bench).
+
+        ``small``: working-size uint8 labels, or None for a frame without valid depth;
+        ``depth``: the sanitised input depth (NaN invalid), which sets the output size.
+        """
+        h, w = depth.shape
+        if small is None:
+            labels = np.zeros((h, w), np.uint8)
+        else:
             small = absorb_fragments(small, fragment_threshold(*small.shape,
                                                                self.fragment_max_pixels))
             labels = small if small.shape == (h, w) else cv2.resize(
@@ -242,7 +254,7 @@ class OutcomeSegmenter:
         objects = {name: count_objects(labels, OUTCOME_IDS[name], threshold, depth)
                    if present[name] else [] for name in OUTCOME_NAMES}
         return OutcomeResult(labels=labels, present=present, pixel_counts=counts,
-                             objects=objects, inference_ms=(time.perf_counter() - t0) * 1e3)
+                             objects=objects, inference_ms=0.0)
 
     def warmup(self, iterations: int = 3) -> None:
         """Run a few synthetic frames so the first real frame is not slow (allocations)."""
