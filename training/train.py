@@ -141,9 +141,10 @@ def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch
         depth = torch.from_numpy(arrays["depth"][s:s + batch_size].astype(np.float32))
         valid = torch.from_numpy(arrays["valid"][s:s + batch_size].astype(np.float32))
         pred = model(network_input(depth, valid, norm).to(device)).argmax(1).cpu().numpy()
-        pred[valid.numpy() == 0] = BACKGROUND  # as inference does: no depth -> background
+        # As inference does: fragments absorbed first, then no depth -> background.
         fragments = fragment_threshold(*pred.shape[1:])
         pred = np.stack([absorb_fragments(p.astype(np.uint8), fragments) for p in pred])
+        pred[valid.numpy() == 0] = BACKGROUND
         truth = arrays["labels"][s:s + batch_size]
         for c in range(NUM_CLASSES):
             counts[s:s + len(pred), c] = (pred == c).reshape(len(pred), -1).sum(1)
