@@ -60,6 +60,10 @@ def test_train_config_validation_names_the_field():
         TrainConfig(epochs=0).validate()
     with pytest.raises(ConfigError, match="train.device"):
         TrainConfig(device="tpu").validate()
+    with pytest.raises(ConfigError, match="train.channels_last"):
+        TrainConfig(channels_last=1).validate()
+    with pytest.raises(ConfigError, match="train.max_width"):
+        TrainConfig(max_width=4).validate()
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
@@ -112,6 +116,24 @@ def test_short_real_training_improves_the_loss_and_evaluates(small_run):
     r = _cli("train", "--out", str(small_run), "--epochs", "4", "--batch-size", "8",
              "--lr", "0.005", "--device", "cpu")
     assert r.returncode == 2 and "another config" in r.stderr
+
+
+def test_bf16_channels_last_training_runs_and_its_checkpoint_loads(small_run, tmp_path):
+    """The CPU speed-up path (bench/training.py): bf16 autocast + NHWC activations."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(small_run, run, ignore=shutil.ignore_patterns("train", "eval"))
+    r = _cli("train", "--out", str(run), "--epochs", "1", "--batch-size", "8", "--device",
+             "cpu", "--amp", "bf16", "--channels-last")
+    assert r.returncode == 0, r.stderr[-2000:]
+    from task_outcome_ros import checkpoint
+
+    ckpt = checkpoint.load(run / "train" / "best.pt")
+    assert ckpt.train_config["train"]["channels_last"] is True
+    assert ckpt.train_config["train"]["amp"] == "bf16"
+    x = torch.zeros(1, ckpt.model_args["in_channels"], 120, 160)
+    assert torch.isfinite(ckpt.model(x)).all()
 
 
 def test_shipped_checkpoint_labels_a_fresh_scene_sensibly(tmp_path):

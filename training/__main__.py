@@ -122,6 +122,8 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help="per-step decay of the weight average that is validated (0 = off)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None)
     p.add_argument("--amp", choices=("auto", "bf16", "off"), default=None)
+    p.add_argument("--channels-last", action="store_const", const=True, default=None,
+                   help="NHWC activations (faster on CPU, see bench/training.py)")
     p.add_argument("--train-seed", type=non_negative_int, default=None)
     p.add_argument("--no-resume", action="store_true", help="start training from scratch")
     p.add_argument("--ship", action="store_true",
@@ -133,7 +135,8 @@ def resolve_train_config(args: argparse.Namespace):
 
     fields = {"epochs": "epochs", "batch_size": "batch_size", "lr": "lr",
               "base_width": "base_width", "max_minutes": "max_minutes", "device": "device",
-              "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay"}
+              "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
+              "channels_last": "channels_last"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
     if args.input_size is not None:
         overrides["input_size"] = tuple(args.input_size)

@@ -121,6 +121,15 @@ class WeightAverage:
                 avg.copy_(current[name])
 
 
+def cpu_has_native_bf16() -> bool:
+    """Whether this CPU computes bf16 natively (Linux /proc/cpuinfo flags; False elsewhere)."""
+    try:
+        flags = Path("/proc/cpuinfo").read_text().split()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
 def working_size_presence(counts: np.ndarray, small_pixels: int) -> np.ndarray:
     """(N, 5) working-size class counts -> (N, 3) presence at the reference resolution."""
     scaled = counts * (REFERENCE_PIXELS / small_pixels)
@@ -186,8 +195,13 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     weights = class_weights(train_arrays["labels"], cfg.class_weight_power).to(device)
 
     model = build_model(cfg.model_args).to(device)
+    memory_format = torch.channels_last if cfg.channels_last else torch.contiguous_format
+    model = model.to(memory_format=memory_format)
     optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     average = WeightAverage(model, cfg.ema_decay)
+    if device.type == "cpu" and cfg.amp == "bf16" and not cpu_has_native_bf16():
+        print("warning: --amp bf16 on a CPU without AVX512-BF16/AMX is emulated and may be "
+              "slower than fp32 (--amp off)")
     use_cuda_amp = device.type == "cuda" and cfg.amp == "auto"
     scaler = torch.amp.GradScaler("cuda") if use_cuda_amp else None
     amp_dtype = torch.float16 if use_cuda_amp else torch.bfloat16
@@ -232,7 +246,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
             labels = torch.from_numpy(train_arrays["labels"][idx].astype(np.int64))
             if cfg.augment:
                 depth, valid, labels = augment(depth, valid, labels, gen)
-            x = network_input(depth, valid, norm).to(device)
+            x = network_input(depth, valid, norm).to(device, memory_format=memory_format)
             labels = labels.to(device)
             for group in optim.param_groups:
                 group["lr"] = lr_at(epoch * steps_per_epoch + b, total_steps, cfg.lr)

@@ -1,0 +1,151 @@
+"""Benchmark one training step of the outcome FCN on this CPU: where the time goes, and whether
+bf16 autocast or channels-last memory format would help.
+
+    python bench/training.py              # 4 configurations x 24 timed steps (~3 min on 2 cores)
+    python bench/training.py --steps 48
+    python bench/training.py --quick      # a smoke run
+
+A step is what ``training.train`` does per batch of 32 at 160 x 120 (the ``TrainConfig``
+defaults): gather + augment, ``network_input`` (incl. the floor fit for the height channel),
+forward + loss + backward + AdamW, and the weight-average update. The four network
+configurations (fp32 / bf16 autocast, each contiguous / channels-last) run interleaved in
+rotating blocks so load changes on the shared machine hit them alike. Batches come from the
+default run's working-size cache when it exists, else synthetic depth.
+
+Writes the ``training`` section of bench/results.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from contextlib import nullcontext
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import record  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+CONFIGS = (("fp32", False), ("fp32", True), ("bf16", False), ("bf16", True))
+
+
+def percentiles(values: list[float]) -> dict:
+    a = np.asarray(values)
+    return {"n": len(a), "p50": round(float(np.percentile(a, 50)), 1),
+            "mean": round(float(a.mean()), 1), "min": round(float(a.min()), 1)}
+
+
+def load_arrays(size: tuple[int, int]) -> tuple[dict, str]:
+    from training.dataset import cache_path
+
+    path = cache_path(REPO / "runs" / "default", "train", size)
+    if path.exists():
+        with np.load(path) as data:
+            arrays = {k: data[k][:512] for k in ("depth", "valid", "labels")}
+        return arrays, f"first 512 images of {path.relative_to(REPO)}"
+    rng = np.random.default_rng(0)
+    w, h = size
+    v = np.linspace(-0.3, 0.3, h, dtype=np.float32)[:, None]
+    depth = (2.0 + v + rng.normal(0, 0.004, (512, h, w))).astype(np.float32)
+    return ({"depth": depth, "valid": np.ones_like(depth),
+             "labels": rng.integers(0, 5, depth.shape).astype(np.uint8)},
+            "synthetic tilted planes (no runs/default cache)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--steps", type=int, default=24, help="timed steps per configuration")
+    ap.add_argument("--quick", action="store_true", help="4 timed steps per configuration")
+    args = ap.parse_args()
+    steps = 4 if args.quick else args.steps
+    block = 2 if args.quick else 4
+
+    import torch
+    import torch.nn.functional as F
+
+    from task_outcome_ros.labels import IGNORE
+    from task_outcome_ros.model import DEFAULT_NORMALISATION, build_model, network_input
+    from training.config import TrainConfig
+    from training.train import WeightAverage, augment
+
+    cfg = TrainConfig()
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(0)
+    arrays, source = load_arrays(cfg.input_size)
+    n = len(arrays["depth"])
+    nets = {}
+    for dtype, channels_last in CONFIGS:
+        net = build_model(cfg.model_args)
+        if channels_last:
+            net = net.to(memory_format=torch.channels_last)
+        optim = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        nets[dtype, channels_last] = (net.train(), optim, WeightAverage(net, cfg.ema_decay))
+    timings = {c: {"data": [], "network_input": [], "step": [], "average": [], "total": []}
+               for c in CONFIGS}
+    gen = torch.Generator().manual_seed(0)
+
+    def one_step(config) -> None:
+        net, optim, average = nets[config]
+        t0 = time.perf_counter()
+        idx = np.sort(torch.randint(0, n, (cfg.batch_size,), generator=gen).numpy())
+        depth = torch.from_numpy(arrays["depth"][idx].astype(np.float32))
+        valid = torch.from_numpy(arrays["valid"][idx].astype(np.float32))
+        labels = torch.from_numpy(arrays["labels"][idx].astype(np.int64))
+        depth, valid, labels = augment(depth, valid, labels, gen)
+        t1 = time.perf_counter()
+        x = network_input(depth, valid, DEFAULT_NORMALISATION)
+        if config[1]:
+            x = x.contiguous(memory_format=torch.channels_last)
+        t2 = time.perf_counter()
+        autocast = (torch.autocast("cpu", dtype=torch.bfloat16) if config[0] == "bf16"
+                    else nullcontext())
+        with autocast:
+            logits = net(x)
+        loss = F.cross_entropy(logits.float(), labels, ignore_index=IGNORE)
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        optim.step()
+        t3 = time.perf_counter()
+        average.update(net)
+        t4 = time.perf_counter()
+        for key, value in (("data", t1 - t0), ("network_input", t2 - t1), ("step", t3 - t2),
+                           ("average", t4 - t3), ("total", t4 - t0)):
+            timings[config][key].append(value * 1e3)
+
+    for config in CONFIGS:  # warm-up: allocator, oneDNN kernels
+        for _ in range(2):
+            one_step(config)
+        for values in timings[config].values():
+            values.clear()
+    started = time.perf_counter()
+    for r in range(0, steps, block):
+        order = CONFIGS[r // block % len(CONFIGS):] + CONFIGS[:r // block % len(CONFIGS)]
+        for config in order:
+            for _ in range(min(block, steps - r)):
+                one_step(config)
+    wall = time.perf_counter() - started
+
+    def name(config) -> str:
+        return f"{config[0]}_{'channels_last' if config[1] else 'contiguous'}"
+
+    results = {name(c): {k: percentiles(v) for k, v in timings[c].items()} for c in CONFIGS}
+    base = results["fp32_contiguous"]["total"]["p50"]
+    record("training", {
+        "batch": cfg.batch_size, "input_size": list(cfg.input_size), "threads": cfg.threads,
+        "model_args": cfg.model_args, "data": source, "timed_steps_per_config": steps,
+        "wall_s": round(wall, 1), "configs": results,
+        "total_p50_over_fp32_contiguous": {k: round(v["total"]["p50"] / base, 2)
+                                           for k, v in results.items()},
+        "epoch_s_estimate_fp32": round(base / 1e3 * 9500 / cfg.batch_size, 1),
+        "versions": {"torch": torch.__version__},
+        "note": "ms per training step of one batch; step = forward + loss + backward + AdamW; "
+                "configurations interleaved in rotating blocks; shared, noisy machine",
+    }, command="python bench/training.py " + " ".join(sys.argv[1:]))
+
+
+if __name__ == "__main__":
+    main()
