@@ -45,6 +45,7 @@ ship: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/inference.py
+	$(PY) bench/training.py
 	$(PY) bench/node.py
 
 lint: $(STAMP)
