@@ -7,7 +7,8 @@
 The four configurations (backend torch/onnx x threads 1/2) run interleaved in short blocks, in
 a rotating order, so a change in machine load hits them all alike; ``paired_ratio`` compares
 neighbouring blocks only. Each timed frame is one ``segment()`` call (the node's code path);
-a staged replica of it on the same frame gives the breakdown (preprocess / network / post).
+the same frame run through its stages one by one (the segmenter's own preprocessing,
+network and ``postprocess``) gives the breakdown (preprocess / network / post).
 A random-init model labels everything background, so its post stage (fragments, resize back,
 presence, connected components: ``OutcomeSegmenter.postprocess``) is also timed on the
 dataset's ground-truth labels at the working size, which is what a trained model would produce.
@@ -276,7 +277,8 @@ def main() -> None:
         "note": ("segment_ms = one OutcomeSegmenter.segment() call on a 640x480 float32 frame; "
                  "segment_cpu_ms = process CPU time of that call, all threads (ORT worker "
                  "threads spin-wait, so it can exceed the wall time x 1); "
-                 "breakdown from a staged replica on the same frame (network includes argmax); "
+                 "breakdown from the same frame run stage by stage through the segmenter's "
+                 "own methods (network includes argmax); "
                  "configurations interleaved in rotating blocks; the machine is shared (see "
                  "load_average_1_5_15), so absolute figures are noisy, ratios within the run "
                  "less so"),
