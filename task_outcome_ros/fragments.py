@@ -20,7 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from task_outcome_ros.labels import OUTCOME_IDS, REFERENCE_PIXELS
+from task_outcome_ros.labels import OUTCOME_IDS, scale_pixel_count
 
 # Largest fragment absorbed, in pixels of a 640 x 480 image (scaled with the area like the
 # presence rule's 50): 16 pixels at the 160 x 120 working size.
@@ -34,7 +34,7 @@ def fragment_threshold(height: int, width: int, max_pixels: int = FRAGMENT_MAX_P
     """``max_pixels`` (at 640 x 480) scaled to an image of this size; 0 turns absorption off."""
     if max_pixels < 0:
         raise ValueError(f"fragment max_pixels must be >= 0, got {max_pixels}")
-    return int(round(max_pixels * height * width / REFERENCE_PIXELS))
+    return scale_pixel_count(max_pixels, height, width)
 
 
 def absorb_fragments(labels: np.ndarray, max_pixels: int) -> np.ndarray:

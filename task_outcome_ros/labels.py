@@ -50,7 +50,12 @@ def presence_threshold(height: int, width: int,
         raise ValueError(f"image size must be positive, got {height} x {width}")
     if min_pixels < 1:
         raise ValueError(f"presence min_pixels must be >= 1, got {min_pixels}")
-    return max(1, int(round(min_pixels * height * width / REFERENCE_PIXELS)))
+    return max(1, scale_pixel_count(min_pixels, height, width))
+
+
+def scale_pixel_count(pixels: int, height: int, width: int) -> int:
+    """A pixel count given at 640 x 480 (REFERENCE_PIXELS), scaled with the image area."""
+    return int(round(pixels * height * width / REFERENCE_PIXELS))
 
 
 def outcome_pixel_counts(labels: np.ndarray) -> dict[str, int]:

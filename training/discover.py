@@ -27,7 +27,7 @@ import numpy as np
 
 from task_outcome_ros.labels import OUTCOME_NAMES
 from training.config import DatasetConfig, SceneConfig, load_json, save_json
-from training.geometry import geometric_outcome, object_measurements
+from training.geometry import geometric_outcome, object_measurements, outer_footprint_ratio
 
 COM_OFFSET_CLIP = 1.5
 
@@ -42,7 +42,7 @@ def features(measurements: list[dict[str, float]]) -> np.ndarray:
 
 def name_cluster(members: list[dict[str, float]], scene: SceneConfig) -> str:
     """Name a cluster from what its typical member looks like."""
-    outer_ratio = 1.0 + scene.wall_thickness / (scene.container_inner_size / 2)
+    outer_ratio = outer_footprint_ratio(scene)
     inside = float(np.median([m["inside_fraction"] for m in members]))
     com = float(np.median([m["com_offset"] for m in members]))
     if inside >= 0.999 and com < 1.0:

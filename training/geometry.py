@@ -73,14 +73,17 @@ def object_measurements(obj: dict, episode: dict, scene: SceneConfig) -> dict[st
     }
 
 
+def outer_footprint_ratio(scene: SceneConfig) -> float:
+    """The outer wall's half-width in units of the inner half-width (``com_offset``'s unit)."""
+    return 1.0 + scene.wall_thickness / (scene.container_inner_size / 2)
+
+
 def geometric_outcome(m: dict[str, float], scene: SceneConfig) -> str:
     """The yardstick of CONTRACTS §2 (never the label source): success if the centre of mass is
     inside the inner footprint and the top below the rim; fell_outside if the centre of mass is
     outside the outer footprint; otherwise stuck_on_rim."""
-    outer_ratio = (scene.container_inner_size / 2 + scene.wall_thickness) / (
-        scene.container_inner_size / 2)
     if m["com_offset"] < 1.0 and m["top_above_rim"] <= 0.0:
         return "success"
-    if m["com_offset"] > outer_ratio:
+    if m["com_offset"] > outer_footprint_ratio(scene):
         return "fell_outside"
     return "stuck_on_rim"

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from training.chunks import load_chunks
 from training.config import dataset_config_from_dict, load_json
-from training.geometry import object_measurements
+from training.geometry import object_measurements, outer_footprint_ratio
 
 NEAR_RIM_M = 0.02
 TAGS = ("near_rim", "across_wall")
@@ -48,7 +48,7 @@ def episode_tags(data_dir: Path, wanted: set[int]) -> dict[int, list[str]] | Non
         return None
     cfg = dataset_config_from_dict(load_json(manifest_path)["config"])
     scene = cfg.scene
-    outer_ratio = 1.0 + scene.wall_thickness / (scene.container_inner_size / 2)
+    outer_ratio = outer_footprint_ratio(scene)
     try:
         episodes = load_chunks(data_dir / "simulate", cfg.episodes, cfg.chunk_size)
     except (FileNotFoundError, ValueError):
