@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from inference import load_frames, percentiles  # noqa: E402
+from common import percentiles  # noqa: E402
+from inference import load_frames  # noqa: E402
 
 LATENCY_SEC, THROUGHPUT_SEC, PRIME_SEC = 1, 2, 3  # header.stamp.sec tags the phase
 PRIME_TRIES, GIVE_UP_AFTER, LATENCY_TIMEOUT_S = 20, 30, 0.5  # p95 is ~20-50 ms

@@ -8,6 +8,8 @@ import platform
 import time
 from pathlib import Path
 
+import numpy as np
+
 RESULTS = Path(__file__).resolve().parent / "results.json"
 
 
@@ -22,6 +24,14 @@ def machine() -> dict:
         pass
     return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
             "platform": platform.platform()}
+
+
+def percentiles(values: list[float]) -> dict:
+    """n, p50, p95, mean and min of timings (ms), rounded for results.json."""
+    a = np.asarray(values, float)
+    return {"n": int(a.size), "p50": round(float(np.percentile(a, 50)), 2),
+            "p95": round(float(np.percentile(a, 95)), 2), "mean": round(float(a.mean()), 2),
+            "min": round(float(a.min()), 2)}
 
 
 def record(section: str, data: dict, command: str) -> None:

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import record  # noqa: E402
+from common import percentiles, record  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RUN_DIR = REPO / "runs" / "default"
@@ -119,13 +119,6 @@ def load_frames(n: int) -> tuple[list[np.ndarray], list[np.ndarray | None], str]
     rng = np.random.default_rng(0)
     return ([synth_frame(rng) for _ in range(n)], [None] * n,
             f"{n} synthetic frames (plane + boxes + 2 % NaN)")
-
-
-def percentiles(values: list[float]) -> dict:
-    a = np.asarray(values, float)
-    return {"n": int(a.size), "p50": round(float(np.percentile(a, 50)), 2),
-            "p95": round(float(np.percentile(a, 95)), 2), "mean": round(float(a.mean()), 2),
-            "min": round(float(a.min()), 2)}
 
 
 def load_average() -> list[float]:

@@ -26,17 +26,11 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import record  # noqa: E402
+from common import percentiles, record  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 CONFIGS = (("fp32", False), ("fp32", True), ("bf16", False), ("bf16", True))
-
-
-def percentiles(values: list[float]) -> dict:
-    a = np.asarray(values)
-    return {"n": len(a), "p50": round(float(np.percentile(a, 50)), 1),
-            "mean": round(float(a.mean()), 1), "min": round(float(a.min()), 1)}
 
 
 def load_arrays(size: tuple[int, int]) -> tuple[dict, str]:
