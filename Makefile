@@ -32,7 +32,7 @@ test-all: $(STAMP)
 	$(PY) -m pytest -q
 
 # Quick retraining profile (<= 20 min on 2 cores): 5,000 episodes, 15 epochs in bf16 with
-# channels-last activations (0.52x the fp32 step time on this CPU, bench/training.py; drop
+# channels-last activations (0.49x the fp32 step time on this CPU, bench/training.py; drop
 # --amp bf16 on CPUs without AVX512-BF16/AMX); the weight average gets a shorter memory
 # (0.993 per step) to match the ~2,200-step schedule.
 train: $(STAMP)

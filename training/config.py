@@ -275,7 +275,7 @@ class TrainConfig:
     augment: bool = True
     device: str = "auto"                  # cpu | cuda | auto
     amp: str = "auto"                     # auto (mixed precision on CUDA only) | bf16 | off
-    # NHWC activations: 0.69x the fp32 step time on the 2-core EPYC, 0.52x with bf16
+    # NHWC activations: 0.69x the fp32 step time on the 2-core EPYC, 0.49x with bf16
     # (bench/training.py). Off by default only because the shipped model was trained without.
     channels_last: bool = False
     threads: int = 2
