@@ -118,22 +118,37 @@ def test_short_real_training_improves_the_loss_and_evaluates(small_run):
     assert r.returncode == 2 and "another config" in r.stderr
 
 
-def test_bf16_channels_last_training_runs_and_its_checkpoint_loads(small_run, tmp_path):
-    """The CPU speed-up path (bench/training.py): bf16 autocast + NHWC activations."""
+def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_path):
+    """The defaults are channels-last and, on a CPU with native bf16, bf16 autocast; the plain
+    fp32 / NCHW path (every other CPU, or by choice) must keep working and say what it used."""
     import shutil
 
     run = tmp_path / "run"
     shutil.copytree(small_run, run, ignore=shutil.ignore_patterns("train", "eval"))
     r = _cli("train", "--out", str(run), "--epochs", "1", "--batch-size", "8", "--device",
-             "cpu", "--amp", "bf16", "--channels-last")
+             "cpu", "--amp", "off", "--no-channels-last")
     assert r.returncode == 0, r.stderr[-2000:]
+    assert "cpu, fp32 autocast, contiguous activations" in r.stdout
     from task_outcome_ros import checkpoint
 
     ckpt = checkpoint.load(run / "train" / "best.pt")
-    assert ckpt.train_config["train"]["channels_last"] is True
-    assert ckpt.train_config["train"]["amp"] == "bf16"
+    assert ckpt.train_config["train"]["channels_last"] is False
+    assert ckpt.train_config["train"]["amp"] == "off"
+    assert ckpt.extra["precision"] == "fp32"
     x = torch.zeros(1, ckpt.model_args["in_channels"], 120, 160)
     assert torch.isfinite(ckpt.model(x)).all()
+
+
+def test_auto_precision_is_mixed_only_where_the_hardware_is_native(monkeypatch):
+    from training import train
+
+    assert train.resolve_precision("off", "cuda") == "fp32"
+    assert train.resolve_precision("bf16", "cpu") == "bf16"
+    assert train.resolve_precision("auto", "cuda") == "fp16"
+    monkeypatch.setattr(train, "cpu_has_native_bf16", lambda: True)
+    assert train.resolve_precision("auto", "cpu") == "bf16"
+    monkeypatch.setattr(train, "cpu_has_native_bf16", lambda: False)
+    assert train.resolve_precision("auto", "cpu") == "fp32"
 
 
 def test_shipped_checkpoint_labels_a_fresh_scene_sensibly(tmp_path):

@@ -121,9 +121,11 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ema-decay", type=float, default=None,
                    help="per-step decay of the weight average that is validated (0 = off)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None)
-    p.add_argument("--amp", choices=("auto", "bf16", "off"), default=None)
-    p.add_argument("--channels-last", action="store_const", const=True, default=None,
-                   help="NHWC activations (faster on CPU, see bench/training.py)")
+    p.add_argument("--amp", choices=("auto", "bf16", "off"), default=None,
+                   help="autocast: auto = fp16 on CUDA, bf16 on CPUs with native bf16, else "
+                        "fp32 (default auto)")
+    p.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
+                   help="NHWC activations (default on: faster on CPU, see bench/training.py)")
     p.add_argument("--train-seed", type=non_negative_int, default=None)
     p.add_argument("--no-resume", action="store_true", help="start training from scratch")
     p.add_argument("--ship", action="store_true",

@@ -130,6 +130,20 @@ def cpu_has_native_bf16() -> bool:
     return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
+def resolve_precision(amp: str, device_type: str) -> str:
+    """``TrainConfig.amp`` -> the autocast dtype used: "fp16" (with a grad scaler), "bf16" or
+    "fp32". ``auto`` picks mixed precision only where the hardware does it natively: fp16 on
+    CUDA, bf16 on a CPU with AVX512-BF16/AMX (0.56x the fp32 step time on the 2-core EPYC,
+    bench/training.py), fp32 elsewhere (emulated bf16 can be slower than fp32)."""
+    if amp == "off":
+        return "fp32"
+    if amp == "bf16":
+        return "bf16"
+    if device_type == "cuda":
+        return "fp16"
+    return "bf16" if device_type == "cpu" and cpu_has_native_bf16() else "fp32"
+
+
 def working_size_presence(counts: np.ndarray, small_pixels: int) -> np.ndarray:
     """(N, 5) working-size class counts -> (N, 3) presence at the reference resolution."""
     scaled = counts * (REFERENCE_PIXELS / small_pixels)
@@ -202,11 +216,13 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     if device.type == "cpu" and cfg.amp == "bf16" and not cpu_has_native_bf16():
         print("warning: --amp bf16 on a CPU without AVX512-BF16/AMX is emulated and may be "
               "slower than fp32 (--amp off)")
-    use_cuda_amp = device.type == "cuda" and cfg.amp == "auto"
-    scaler = torch.amp.GradScaler("cuda") if use_cuda_amp else None
-    amp_dtype = torch.float16 if use_cuda_amp else torch.bfloat16
+    precision = resolve_precision(cfg.amp, device.type)
+    scaler = torch.amp.GradScaler("cuda") if precision == "fp16" else None
+    amp_dtype = torch.float16 if precision == "fp16" else torch.bfloat16
     autocast = (lambda: torch.autocast(device.type, dtype=amp_dtype)) \
-        if (use_cuda_amp or cfg.amp == "bf16") else nullcontext
+        if precision != "fp32" else nullcontext
+    print(f"train: {device.type}, {precision} autocast, "
+          f"{'channels-last' if cfg.channels_last else 'contiguous'} activations")
 
     n = len(train_arrays["indices"])
     steps_per_epoch = math.ceil(n / cfg.batch_size)
@@ -273,7 +289,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
               f"({entry['epoch_s']} s)")
         key = (metrics["image_all_correct"], metrics["pixel_miou"])
         extra = {"history": history, "best_key": list(max(key, best_key)),
-                 "dataset": str(run_dir), "n_train": n}
+                 "dataset": str(run_dir), "n_train": n, "precision": precision}
         common = dict(model_args=cfg.model_args, input_size=cfg.input_size, normalisation=norm,
                       train_config={"train": to_dict(cfg), "dataset": manifest["config"]},
                       metrics=metrics)
