@@ -278,7 +278,7 @@ class TrainConfig:
     # (train.resolve_precision). bf16 | off force it.
     amp: str = "auto"
     # NHWC activations: 0.69x the fp32 step time on the 2-core EPYC, 0.49x with bf16
-    # (bench/training.py); --no-channels-last turns it off.
+    # (bench/train_step.py); --no-channels-last turns it off.
     channels_last: bool = True
     threads: int = 2
     seed: int = 0

@@ -2,8 +2,9 @@
 
 Class-weighted cross-entropy ignoring 255 (no depth), AdamW with warm-up + cosine decay, an
 exponential moving average (EMA) of the weights that is validated and shipped, label-honest
-augmentation (mirror, small shifts, depth scale, re-drawn axial noise and
-dropout: all leave labels where the objects are), mixed precision on CUDA, resumable
+augmentation (mirror, small shifts, depth scale, re-drawn axial noise and dropout: all leave
+labels where the objects are), mixed precision where the hardware does it natively (fp16 on
+CUDA, bf16 on CPUs with AVX512-BF16/AMX), channels-last activations, resumable
 self-describing checkpoints after every epoch, a training-curve plot.
 
 Efficiency on 2 CPU cores (measured, see README): images are decoded and shrunk once into the
@@ -134,7 +135,7 @@ def resolve_precision(amp: str, device_type: str) -> str:
     """``TrainConfig.amp`` -> the autocast dtype used: "fp16" (with a grad scaler), "bf16" or
     "fp32". ``auto`` picks mixed precision only where the hardware does it natively: fp16 on
     CUDA, bf16 on a CPU with AVX512-BF16/AMX (0.56x the fp32 step time on the 2-core EPYC,
-    bench/training.py), fp32 elsewhere (emulated bf16 can be slower than fp32)."""
+    bench/train_step.py), fp32 elsewhere (emulated bf16 can be slower than fp32)."""
     if amp == "off":
         return "fp32"
     if amp == "bf16":

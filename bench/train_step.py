@@ -1,9 +1,9 @@
 """Benchmark one training step of the outcome FCN on this CPU: where the time goes, and whether
 bf16 autocast or channels-last memory format would help.
 
-    python bench/training.py              # 4 configurations x 24 timed steps (~3 min on 2 cores)
-    python bench/training.py --steps 48
-    python bench/training.py --quick      # a smoke run
+    python bench/train_step.py              # 4 configurations x 24 timed steps (~3 min on 2 cores)
+    python bench/train_step.py --steps 48
+    python bench/train_step.py --quick      # a smoke run
 
 A step is what ``training.train`` does per batch of 32 at 160 x 120 (the ``TrainConfig``
 defaults): gather + augment, ``network_input`` (incl. the floor fit for the height channel),
@@ -138,7 +138,7 @@ def main() -> None:
         "versions": {"torch": torch.__version__},
         "note": "ms per training step of one batch; step = forward + loss + backward + AdamW; "
                 "configurations interleaved in rotating blocks; shared, noisy machine",
-    }, command="python bench/training.py " + " ".join(sys.argv[1:]))
+    }, command="python bench/train_step.py " + " ".join(sys.argv[1:]))
 
 
 if __name__ == "__main__":

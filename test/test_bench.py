@@ -1,0 +1,49 @@
+"""The bench scripts stay runnable: smoke runs of the quick modes, written to a temporary
+results file (BENCH_RESULTS), never over the measured bench/results.json.
+
+Why this exists: a bench script named like one of the repo's packages (bench/training.py,
+once) shadows it for every other script in bench/, because Python puts the script's folder
+first on sys.path; bench/inference.py then failed at its first ``from training...``."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+BENCH = REPO / "bench"
+
+
+def test_no_bench_script_shadows_a_package_of_the_repo():
+    packages = {p.parent.name for p in REPO.glob("*/__init__.py")}
+    assert {"training", "task_outcome_ros"} <= packages
+    scripts = {p.stem for p in BENCH.glob("*.py")}
+    assert not scripts & packages, f"rename bench/{sorted(scripts & packages)}.py"
+
+
+def _run(script: str, results: Path, *args: str) -> dict:
+    env = {**os.environ, "BENCH_RESULTS": str(results)}
+    r = subprocess.run([sys.executable, str(BENCH / script), *args], capture_output=True,
+                       text=True, timeout=300, env=env, cwd=REPO)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return json.loads(results.read_text())
+
+
+@pytest.mark.parametrize("script, args, section", [
+    ("inference.py", ("--quick", "--threads", "1"), "inference"),
+    ("train_step.py", ("--quick",), "training"),
+])
+def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, section):
+    results = tmp_path / "results.json"
+    report = _run(script, results, *args)[section]
+    assert report["command"].startswith(f"python bench/{script}")
+    assert report["machine"]["cores"] >= 1
+    timings = [v["segment_ms"] for v in report["configs"].values()] if section == "inference" \
+        else [v["total"] for v in report["configs"].values()]
+    assert timings and all(t["n"] > 0 and 0 < t["min"] <= t["p50"] <= t["p95"]
+                           for t in timings)
