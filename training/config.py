@@ -277,7 +277,7 @@ class TrainConfig:
     # auto: fp16 on CUDA, bf16 on a CPU with native bf16 (AVX512-BF16/AMX), else fp32
     # (train.resolve_precision). bf16 | off force it.
     amp: str = "auto"
-    # NHWC activations: 0.69x the fp32 step time on the 2-core EPYC, 0.49x with bf16
+    # NHWC activations: ~0.7x the fp32 step time on the 2-core EPYC, ~0.5x with bf16
     # (bench/train_step.py); --no-channels-last turns it off.
     channels_last: bool = True
     threads: int = 2
