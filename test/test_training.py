@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from task_outcome_ros.labels import (
     CONTAINER,
     FELL_OUTSIDE,
@@ -104,7 +105,7 @@ def test_short_real_training_improves_the_loss_and_evaluates(small_run):
         assert 0.0 <= report[name]["presence_precision"] <= 1.0
         assert 0.0 <= report[name]["presence_recall"] <= 1.0
     assert report["n_images"] == 2   # 5 % of 40 episodes
-    assert report["fragment_max_pixels"] == 256
+    assert report["fragment_max_pixels"] == FRAGMENT_MAX_PIXELS
     hard = report["hard_cases"]    # tags come from the run's own simulated final states
     assert set(hard["images"]) == {"near_rim", "across_wall"}
     assert 0 <= hard["untagged_images"] <= report["n_images"]
