@@ -255,9 +255,11 @@ def run_demo(out: Path, episodes: int = 40, seed: int = 2026, timeout_s: float =
                     "output_bag": str(out / "output_bag"), "input_bag": str(bag)},
     }
     (out / "summary.json").write_text(json.dumps({**summary, "scores": scores}, indent=1))
+    p50 = summary["node_latency_ms_p50"]
     print(f"[demo] 5/5 {summary['frames_answered']}/{n_frames} frames answered, "
           f"{summary['image_all_correct']:.1%} all-correct, node latency p50 "
-          f"{summary['node_latency_ms_p50']} ms; contact sheet: {out / 'contact_sheet.png'}")
+          f"{'n/a' if p50 is None else f'{p50:.1f}'} ms; contact sheet: "
+          f"{out / 'contact_sheet.png'}")
     return summary
 
 
