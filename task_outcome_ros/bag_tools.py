@@ -29,8 +29,9 @@ import numpy as np
 
 from task_outcome_ros import labels as L
 from task_outcome_ros import outcome_report as R
-from task_outcome_ros.cli_args import positive_int
+from task_outcome_ros.cli_args import non_negative_int, positive_int
 from task_outcome_ros.depth import DepthDecodeError, decode_depth, encode_depth
+from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 
 IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
@@ -345,6 +346,7 @@ def score(ground_truth: dict, predicted: dict[int, dict[str, bool] | None],
 def process_bag(in_bag: Path, out_bag: Path | None = None, *, model: str | None = None,
                 device: str = "cpu", backend: str = "auto",
                 presence_min_pixels: int = L.PRESENCE_MIN_PIXELS,
+                fragment_max_pixels: int = FRAGMENT_MAX_PIXELS,
                 topic: str = DEPTH_TOPIC, camera_info_topic: str = CAMERA_INFO_TOPIC,
                 namespace: str = "", overlay: bool = True,
                 overlay_alpha: float = R.DEFAULT_OVERLAY_ALPHA, copy_input: bool = True,
@@ -375,7 +377,8 @@ def process_bag(in_bag: Path, out_bag: Path | None = None, *, model: str | None 
         if copy_input and clash:
             raise BagToolError(f"bag {in_bag} already has {clash}: pass --no-copy-input or "
                                "another --namespace")
-        segmenter = _segmenter(model, device, backend, presence_min_pixels, num_threads)
+        segmenter = _segmenter(model, device, backend, presence_min_pixels, num_threads,
+                               fragment_max_pixels)
         writer = open_writer(out_bag, storage or bag_storage(in_bag), overwrite)
         try:
             copied = {c.id: copy_connection(writer, c) for c in reader.connections} \
@@ -423,7 +426,7 @@ def process_bag(in_bag: Path, out_bag: Path | None = None, *, model: str | None 
 
 
 def _segmenter(model: str | None, device: str, backend: str, presence_min_pixels: int,
-               num_threads: int | None) -> Any:
+               num_threads: int | None, fragment_max_pixels: int) -> Any:
     # Imported here so the rosbags helpers (used by `training export-bag`) do not load torch.
     from task_outcome_ros.checkpoint import CheckpointError
     from task_outcome_ros.inference import OutcomeSegmenter
@@ -431,7 +434,8 @@ def _segmenter(model: str | None, device: str, backend: str, presence_min_pixels
     try:
         segmenter = OutcomeSegmenter(model or None, device=device,
                                      presence_min_pixels=presence_min_pixels, backend=backend,
-                                     num_threads=num_threads)
+                                     num_threads=num_threads,
+                                     fragment_max_pixels=fragment_max_pixels)
         segmenter.warmup()  # as the node does, so the first inference_ms is not inflated
         return segmenter
     except (CheckpointError, ValueError, RuntimeError, OSError, ImportError) as exc:
@@ -523,6 +527,9 @@ def build_offline_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=positive_int, default=None, help="inference threads")
     p.add_argument("--presence-min-pixels", type=positive_int, default=L.PRESENCE_MIN_PIXELS,
                    help="pixels an outcome needs to be present at 640x480 (default %(default)s)")
+    p.add_argument("--fragment-max-pixels", type=non_negative_int, default=FRAGMENT_MAX_PIXELS,
+                   help="absorb outcome fragments smaller than this (at 640x480) into the "
+                        "outcome they touch; 0 = off (default %(default)s)")
     p.add_argument("--topic", default=DEPTH_TOPIC, help="depth image topic (default %(default)s)")
     p.add_argument("--camera-info-topic", default=CAMERA_INFO_TOPIC,
                    help="camera_info topic (default %(default)s)")
@@ -544,7 +551,8 @@ def offline_main(argv: list[str] | None = None) -> int:
     try:
         summary = process_bag(
             args.bag, args.out, model=args.model, device=args.device, backend=args.backend,
-            presence_min_pixels=args.presence_min_pixels, topic=args.topic,
+            presence_min_pixels=args.presence_min_pixels,
+            fragment_max_pixels=args.fragment_max_pixels, topic=args.topic,
             camera_info_topic=args.camera_info_topic, namespace=args.namespace,
             overlay=not args.no_overlay, overlay_alpha=args.overlay_alpha,
             copy_input=not args.no_copy_input, storage=args.storage, overwrite=args.overwrite,

@@ -42,6 +42,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from task_outcome_ros import labels as L
 from task_outcome_ros import outcome_report as R
 from task_outcome_ros.depth import DepthDecodeError, decode_depth
+from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 
 NODE_NAME = "outcome_node"
 STATUS_NAME = R.STATUS_NAME
@@ -79,6 +80,11 @@ PARAMS: dict[str, _ParamSpec] = {
         L.PRESENCE_MIN_PIXELS,
         "Pixels an outcome needs to count as present at 640x480 (scaled with image area).",
         True, "an integer >= 1 (default 50)", (1, 1_000_000)),
+    "fragment_max_pixels": _ParamSpec(
+        FRAGMENT_MAX_PIXELS,
+        "One object, one outcome: an outcome fragment smaller than this many pixels at 640x480 "
+        "(scaled with image area) that touches another outcome takes that outcome; 0 = off.",
+        True, f"an integer >= 0 (default {FRAGMENT_MAX_PIXELS})", (0, 1_000_000)),
     "threads": _ParamSpec(
         1, "CPU threads for inference (torch and onnxruntime). 1 is the measured best on a "
            "2-core machine shared with other work (bench/inference.py).",
@@ -187,6 +193,7 @@ class OutcomeNode(Node):
         try:
             seg = OutcomeSegmenter(model_path, device=self._params["device"],
                                    presence_min_pixels=self._params["presence_min_pixels"],
+                                   fragment_max_pixels=self._params["fragment_max_pixels"],
                                    num_threads=self._params["threads"],
                                    backend=self._params["backend"])
             seg.warmup()

@@ -259,6 +259,8 @@ def test_outcome_bag_errors_name_what_to_fix(work, tmp_path):
     assert "/depth/image_raw" in result.stderr and "Traceback" not in result.stderr
     result = _run(cmd + [str(tmp_path / "nope")])
     assert result.returncode == 2 and "no bag at" in result.stderr
+    result = _run(cmd + [str(work / "mcap_32FC1"), "--fragment-max-pixels", "-1"])
+    assert result.returncode == 2 and "--fragment-max-pixels" in result.stderr
 
 
 def test_scoring_counts_missing_and_error_frames_as_wrong():

@@ -33,6 +33,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
 from task_outcome_ros import labels as L  # noqa: E402
+from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS  # noqa: E402
 
 DOMAIN_ID = random.randint(1, 200)
 CONFIG = nh.REPO / "config" / "outcome_node.yaml"
@@ -135,8 +136,8 @@ def check_reply(request, reply) -> np.ndarray:
 
 def test_parameters_declared_with_descriptions_and_defaults(session):
     client, _ = session
-    names = ["model_path", "device", "backend", "presence_min_pixels", "publish_overlay",
-             "overlay_alpha", "publish_markers", "qos"]
+    names = ["model_path", "device", "backend", "presence_min_pixels", "fragment_max_pixels",
+             "publish_overlay", "overlay_alpha", "publish_markers", "qos"]
     describe = client.node.create_client(rcl_srv.DescribeParameters,
                                          "/outcome_node/describe_parameters")
     get = client.node.create_client(rcl_srv.GetParameters, "/outcome_node/get_parameters")
@@ -157,6 +158,7 @@ def test_parameters_declared_with_descriptions_and_defaults(session):
     assert values["backend"].string_value == "auto"
     assert values["qos"].string_value == "sensor_data"
     assert values["presence_min_pixels"].integer_value == L.PRESENCE_MIN_PIXELS
+    assert values["fragment_max_pixels"].integer_value == FRAGMENT_MAX_PIXELS
     assert values["publish_overlay"].bool_value is True
     assert 0.0 <= values["overlay_alpha"].double_value <= 1.0
     assert values["model_path"].string_value.endswith("fell_everywhere.pt")
@@ -389,7 +391,8 @@ def test_namespace_reliable_qos_and_no_overlay(random_session):
     assert "qos reliable" in proc.log()
 
 
-@pytest.mark.parametrize("case", ["qos", "presence_min_pixels", "overlay_alpha", "missing_model",
+@pytest.mark.parametrize("case", ["qos", "presence_min_pixels", "fragment_max_pixels",
+                                  "overlay_alpha", "missing_model",
                                   "corrupt_model", "not_a_checkpoint"])
 def test_bad_parameter_or_model_stops_node_with_clear_message(tmp_path, case):
     corrupt = tmp_path / "corrupt.pt"
@@ -400,6 +403,7 @@ def test_bad_parameter_or_model_stops_node_with_clear_message(tmp_path, case):
     args, needle = {
         "qos": (["-p", "qos:=bogus"], "'qos'"),
         "presence_min_pixels": (["-p", "presence_min_pixels:=0"], "presence_min_pixels"),
+        "fragment_max_pixels": (["-p", "fragment_max_pixels:=-1"], "fragment_max_pixels"),
         "overlay_alpha": (["-p", "overlay_alpha:=1.5"], "overlay_alpha"),
         "missing_model": (["-p", "model_path:=/nonexistent/outcome.pt"],
                           "/nonexistent/outcome.pt"),
