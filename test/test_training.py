@@ -129,7 +129,7 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
     r = _cli("train", "--out", str(run), "--epochs", "1", "--batch-size", "8", "--device",
              "cpu", "--amp", "off", "--no-channels-last")
     assert r.returncode == 0, r.stderr[-2000:]
-    assert "cpu, fp32 autocast, contiguous activations" in r.stdout
+    assert "train: cpu, fp32, contiguous activations" in r.stdout
     from task_outcome_ros import checkpoint
 
     ckpt = checkpoint.load(run / "train" / "best.pt")

@@ -222,7 +222,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     amp_dtype = torch.float16 if precision == "fp16" else torch.bfloat16
     autocast = (lambda: torch.autocast(device.type, dtype=amp_dtype)) \
         if precision != "fp32" else nullcontext
-    print(f"train: {device.type}, {precision} autocast, "
+    print(f"train: {device.type}, {'fp32' if precision == 'fp32' else precision + ' autocast'}, "
           f"{'channels-last' if cfg.channels_last else 'contiguous'} activations")
 
     n = len(train_arrays["indices"])
