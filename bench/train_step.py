@@ -6,8 +6,9 @@ bf16 autocast or channels-last memory format would help.
     python bench/train_step.py --quick      # a smoke run
 
 A step is what ``training.train`` does per batch of 32 at 160 x 120 (the ``TrainConfig``
-defaults): gather + augment, ``network_input`` (incl. the floor fit for the height channel),
-forward + loss + backward + AdamW, and the weight-average update. The four network
+defaults), through the training loop's own functions: ``gather_batch`` (gather + augment),
+``network_input`` (incl. the floor fit for the height channel), ``optimise_step`` (forward +
+class-weighted loss + backward + AdamW) and the weight-average update. The four network
 configurations (fp32 / bf16 autocast, each contiguous / channels-last) run interleaved in
 rotating blocks so load changes on the shared machine hit them alike. Batches come from the
 default run's working-size cache when it exists, else synthetic depth.
@@ -20,7 +21,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -59,18 +59,23 @@ def main() -> None:
     block = 2 if args.quick else 4
 
     import torch
-    import torch.nn.functional as F
 
-    from task_outcome_ros.labels import IGNORE
     from task_outcome_ros.model import DEFAULT_NORMALISATION, build_model, network_input
     from training.config import TrainConfig
-    from training.train import WeightAverage, augment
+    from training.train import (
+        WeightAverage,
+        autocast_factory,
+        class_weights,
+        gather_batch,
+        optimise_step,
+    )
 
     cfg = TrainConfig()
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(0)
     arrays, source = load_arrays(cfg.input_size)
     n = len(arrays["depth"])
+    weights = class_weights(arrays["labels"], cfg.class_weight_power)
     nets = {}
     for dtype, channels_last in CONFIGS:
         net = build_model(cfg.model_args)
@@ -86,23 +91,13 @@ def main() -> None:
         net, optim, average = nets[config]
         t0 = time.perf_counter()
         idx = np.sort(torch.randint(0, n, (cfg.batch_size,), generator=gen).numpy())
-        depth = torch.from_numpy(arrays["depth"][idx].astype(np.float32))
-        valid = torch.from_numpy(arrays["valid"][idx].astype(np.float32))
-        labels = torch.from_numpy(arrays["labels"][idx].astype(np.int64))
-        depth, valid, labels = augment(depth, valid, labels, gen)
+        depth, valid, labels = gather_batch(arrays, idx, gen)
         t1 = time.perf_counter()
         x = network_input(depth, valid, DEFAULT_NORMALISATION)
         if config[1]:
             x = x.contiguous(memory_format=torch.channels_last)
         t2 = time.perf_counter()
-        autocast = (torch.autocast("cpu", dtype=torch.bfloat16) if config[0] == "bf16"
-                    else nullcontext())
-        with autocast:
-            logits = net(x)
-        loss = F.cross_entropy(logits.float(), labels, ignore_index=IGNORE)
-        optim.zero_grad(set_to_none=True)
-        loss.backward()
-        optim.step()
+        optimise_step(net, optim, x, labels, weights, autocast_factory(config[0], "cpu"), None)
         t3 = time.perf_counter()
         average.update(net)
         t4 = time.perf_counter()
@@ -136,7 +131,8 @@ def main() -> None:
                                            for k, v in results.items()},
         "epoch_s_estimate_fp32": round(base / 1e3 * 9500 / cfg.batch_size, 1),
         "versions": {"torch": torch.__version__},
-        "note": "ms per training step of one batch; step = forward + loss + backward + AdamW; "
+        "note": "ms per training step of one batch; step = training.train.optimise_step "
+                "(forward + class-weighted loss + backward + AdamW); "
                 "configurations interleaved in rotating blocks; shared, noisy machine",
     }, command="python bench/train_step.py " + " ".join(sys.argv[1:]))
 

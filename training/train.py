@@ -145,6 +145,44 @@ def resolve_precision(amp: str, device_type: str) -> str:
     return "bf16" if device_type == "cpu" and cpu_has_native_bf16() else "fp32"
 
 
+def autocast_factory(precision: str, device_type: str):
+    """A zero-argument callable giving the autocast context of ``resolve_precision``'s answer
+    (a no-op context for fp32)."""
+    if precision == "fp32":
+        return nullcontext
+    dtype = torch.float16 if precision == "fp16" else torch.bfloat16
+    return lambda: torch.autocast(device_type, dtype=dtype)
+
+
+def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None):
+    """(depth, valid, labels) tensors of the cached images ``idx``, augmented unless ``gen`` is
+    None (the training loop's data step; bench/train_step.py times this very function)."""
+    depth = torch.from_numpy(arrays["depth"][idx].astype(np.float32))
+    valid = torch.from_numpy(arrays["valid"][idx].astype(np.float32))
+    labels = torch.from_numpy(arrays["labels"][idx].astype(np.int64))
+    if gen is not None:
+        depth, valid, labels = augment(depth, valid, labels, gen)
+    return depth, valid, labels
+
+
+def optimise_step(model, optim, x: torch.Tensor, labels: torch.Tensor,
+                  weights: torch.Tensor | None, autocast, scaler) -> torch.Tensor:
+    """Forward (under ``autocast``), class-weighted cross-entropy ignoring 255, backward and one
+    optimiser step (through the grad scaler when there is one). Returns the loss."""
+    with autocast():
+        logits = model(x)
+    loss = F.cross_entropy(logits.float(), labels, weight=weights, ignore_index=IGNORE)
+    optim.zero_grad(set_to_none=True)
+    if scaler is not None:
+        scaler.scale(loss).backward()
+        scaler.step(optim)
+        scaler.update()
+    else:
+        loss.backward()
+        optim.step()
+    return loss
+
+
 def working_size_presence(counts: np.ndarray, small_pixels: int) -> np.ndarray:
     """(N, 5) working-size class counts -> (N, 3) presence at the reference resolution."""
     scaled = counts * (REFERENCE_PIXELS / small_pixels)
@@ -219,9 +257,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
               "slower than fp32 (--amp off)")
     precision = resolve_precision(cfg.amp, device.type)
     scaler = torch.amp.GradScaler("cuda") if precision == "fp16" else None
-    amp_dtype = torch.float16 if precision == "fp16" else torch.bfloat16
-    autocast = (lambda: torch.autocast(device.type, dtype=amp_dtype)) \
-        if precision != "fp32" else nullcontext
+    autocast = autocast_factory(precision, device.type)
     print(f"train: {device.type}, {'fp32' if precision == 'fp32' else precision + ' autocast'}, "
           f"{'channels-last' if cfg.channels_last else 'contiguous'} activations")
 
@@ -258,26 +294,12 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         t_epoch = time.perf_counter()
         for b in bar:
             idx = np.sort(order[b * cfg.batch_size:(b + 1) * cfg.batch_size])
-            depth = torch.from_numpy(train_arrays["depth"][idx].astype(np.float32))
-            valid = torch.from_numpy(train_arrays["valid"][idx].astype(np.float32))
-            labels = torch.from_numpy(train_arrays["labels"][idx].astype(np.int64))
-            if cfg.augment:
-                depth, valid, labels = augment(depth, valid, labels, gen)
+            depth, valid, labels = gather_batch(train_arrays, idx, gen if cfg.augment else None)
             x = network_input(depth, valid, norm).to(device, memory_format=memory_format)
             labels = labels.to(device)
             for group in optim.param_groups:
                 group["lr"] = lr_at(epoch * steps_per_epoch + b, total_steps, cfg.lr)
-            with autocast():
-                logits = model(x)
-            loss = F.cross_entropy(logits.float(), labels, weight=weights, ignore_index=IGNORE)
-            optim.zero_grad(set_to_none=True)
-            if scaler is not None:
-                scaler.scale(loss).backward()
-                scaler.step(optim)
-                scaler.update()
-            else:
-                loss.backward()
-                optim.step()
+            loss = optimise_step(model, optim, x, labels, weights, autocast, scaler)
             average.update(model)
             losses.append(loss.item())
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
