@@ -8,7 +8,14 @@ import pytest
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS, absorb_fragments, fragment_threshold
 from task_outcome_ros.labels import CONTAINER, FELL_OUTSIDE, STUCK_ON_RIM, SUCCESS
 from training.evaluate import hard_case_report
-from training.hard_cases import NEAR_RIM_M, object_tags
+from training.hard_cases import (
+    NEAR_RIM_M,
+    HardCase,
+    object_rim_gap,
+    object_tags,
+    rim_gap_bin,
+    rim_gap_bin_names,
+)
 
 
 def _scene() -> np.ndarray:
@@ -72,14 +79,31 @@ def test_hard_case_tags_follow_the_geometry():
     assert object_tags(fell, outer) == set()                 # beside the container: no rim
     across = {**fell, "com_offset": 1.02, "over_fraction": 0.6}
     assert object_tags(across, outer) == {"near_rim", "across_wall"}
+    assert object_rim_gap({**inside, "top_above_rim": -0.004}, outer) == 0.004
+    assert object_rim_gap(fell, outer) is None
+
+
+def test_rim_gap_bins_cover_every_gap_once():
+    names = rim_gap_bin_names()
+    assert names[0] == "0-2 mm" and names[-1] == ">= 20 mm"
+    assert [rim_gap_bin(g) for g in (0.0, 0.0019, 0.002, 0.0049, 0.007, 0.015, 0.02, 0.5)] \
+        == [0, 0, 1, 1, 2, 3, 4, 4]
+    assert rim_gap_bin(None) == len(names) - 1     # nothing over the container: the open bin
 
 
 def test_hard_case_report_counts_mistakes_per_tag():
     rows = [{"episode": 0, "correct": True}, {"episode": 1, "correct": False},
             {"episode": 2, "correct": False}, {"episode": 3, "correct": True}]
-    tags = {0: [], 1: ["near_rim"], 2: [], 3: ["across_wall", "near_rim"]}
-    hard = hard_case_report(rows, tags)["hard_cases"]
+    cases = {0: HardCase((), None), 1: HardCase(("near_rim",), 0.001),
+             2: HardCase((), 0.3), 3: HardCase(("across_wall", "near_rim"), 0.003)}
+    hard = hard_case_report(rows, cases)["hard_cases"]
     assert hard["images"] == {"near_rim": 2, "across_wall": 1}
     assert hard["mistakes"] == {"near_rim": 1, "across_wall": 0, "untagged": 1}
     assert hard["untagged_images"] == 2 and hard["untagged_image_all_correct"] == 0.5
+    by_gap = {e["bin"]: e for e in hard["by_rim_gap"]}
+    assert by_gap["0-2 mm"] == {"bin": "0-2 mm", "images": 1, "mistakes": 1,
+                                "image_all_correct": 0.0}
+    assert by_gap["2-5 mm"]["image_all_correct"] == 1.0
+    assert by_gap[">= 20 mm"]["images"] == 2 and by_gap[">= 20 mm"]["mistakes"] == 1
+    assert by_gap["5-10 mm"]["images"] == 0 and by_gap["5-10 mm"]["image_all_correct"] is None
     assert hard_case_report(rows, None) == {}

@@ -111,6 +111,9 @@ def test_short_real_training_improves_the_loss_and_evaluates(small_run):
     assert 0 <= hard["untagged_images"] <= report["n_images"]
     assert hard["mistakes"]["untagged"] <= len(report["mistakes"])
     assert sum(hard["mistakes"].values()) >= len(report["mistakes"])  # each one counted
+    assert sum(e["images"] for e in hard["by_rim_gap"]) == report["n_images"]
+    assert sum(e["mistakes"] for e in hard["by_rim_gap"]) == len(report["mistakes"])
+    assert (small_run / "eval" / "rim_gap.png").exists()
     assert (small_run / "eval" / "confusion.png").exists()
 
     # Resuming a finished run changes nothing; a different config is refused clearly.

@@ -184,9 +184,13 @@ def cmd_evaluate(args) -> None:
           f"presence recall {report['presence_recall']} -> {out}/eval.json")
     hard = report.get("hard_cases")
     if hard:
+        untagged = hard["untagged_image_all_correct"]
         print(f"  mistakes per hard case {hard['mistakes']}; all-correct on the "
               f"{hard['untagged_images']} images without one: "
-              f"{hard['untagged_image_all_correct']:.4f}")
+              + ("-" if untagged is None else f"{untagged:.4f}"))
+        print("  right per rim gap: " + ", ".join(
+            f"{e['bin']} {e['images'] - e['mistakes']}/{e['images']}"
+            for e in hard["by_rim_gap"]))
 
 
 def add_eval_args(p: argparse.ArgumentParser) -> None:

@@ -27,7 +27,15 @@ from task_outcome_ros.labels import (
 )
 from training.config import save_json
 from training.dataset import load_manifest
-from training.hard_cases import NEAR_RIM_M, TAGS, episode_tags
+from training.hard_cases import (
+    NEAR_RIM_M,
+    RIM_GAP_BINS_MM,
+    TAGS,
+    HardCase,
+    episode_hard_cases,
+    rim_gap_bin,
+    rim_gap_bin_names,
+)
 from training.render import read_pair
 
 
@@ -37,20 +45,32 @@ def confusion(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
                        minlength=NUM_CLASSES ** 2).reshape(NUM_CLASSES, NUM_CLASSES)
 
 
-def hard_case_report(rows: list[dict], tags: dict[int, list[str]] | None) -> dict:
-    """Mistakes per hard-case tag (hard_cases.py) and the all-correct rate of untagged images."""
-    if tags is None:
+def hard_case_report(rows: list[dict], cases: dict[int, HardCase] | None) -> dict:
+    """Mistakes per hard-case tag (hard_cases.py), the all-correct rate of untagged images and
+    the all-correct rate per rim-gap bin."""
+    if cases is None:
         return {}
-    untagged = [r for r in rows if not tags[r["episode"]]]
+    tagged = {r["episode"]: cases[r["episode"]].tags for r in rows}
+    untagged = [r for r in rows if not tagged[r["episode"]]]
     mistakes = [r for r in rows if not r["correct"]]
+    by_gap = [{"bin": name, "images": 0, "mistakes": 0} for name in rim_gap_bin_names()]
+    for r in rows:
+        entry = by_gap[rim_gap_bin(cases[r["episode"]].rim_gap_m)]
+        entry["images"] += 1
+        entry["mistakes"] += not r["correct"]
+    for entry in by_gap:
+        entry["image_all_correct"] = (1.0 - entry["mistakes"] / entry["images"]
+                                      if entry["images"] else None)
     return {"hard_cases": {
         "near_rim_m": NEAR_RIM_M,
-        "images": {t: sum(t in tags[r["episode"]] for r in rows) for t in TAGS},
-        "mistakes": {**{t: sum(t in tags[r["episode"]] for r in mistakes) for t in TAGS},
-                     "untagged": sum(not tags[r["episode"]] for r in mistakes)},
+        "images": {t: sum(t in tagged[r["episode"]] for r in rows) for t in TAGS},
+        "mistakes": {**{t: sum(t in tagged[r["episode"]] for r in mistakes) for t in TAGS},
+                     "untagged": sum(not tagged[r["episode"]] for r in mistakes)},
         "untagged_images": len(untagged),
         "untagged_image_all_correct": (sum(r["correct"] for r in untagged) / len(untagged)
                                        if untagged else None),
+        "rim_gap_bins_mm": list(RIM_GAP_BINS_MM),
+        "by_rim_gap": by_gap,
     }}
 
 
@@ -98,13 +118,16 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         "inference_ms_p50": float(np.percentile(times, 50)),
         "confusion": conf.tolist(),
         "mistakes": [r["episode"] for r in rows if not r["correct"]],
-        **hard_case_report(rows, episode_tags(data_dir, {r["episode"] for r in rows})),
+        **hard_case_report(rows, episode_hard_cases(data_dir, {r["episode"] for r in rows})),
     }
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_json(out_dir / "eval.json", report)
     plot_confusion(out_dir / "confusion.png", conf)
     plot_examples(out_dir / "eval_examples.png", data_dir, rows, seg)
+    if "hard_cases" in report:
+        plot_rim_gap(out_dir / "rim_gap.png", report["hard_cases"]["by_rim_gap"],
+                     report["image_all_correct"])
     return report
 
 
@@ -127,6 +150,32 @@ def plot_confusion(path: Path, conf: np.ndarray) -> None:
     ax.set_ylabel("true (pixels with depth)")
     ax.set_title("pixel confusion, row-normalised")
     fig.colorbar(im)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_rim_gap(path: Path, by_gap: list[dict], overall: float) -> None:
+    """All-correct per rim-gap bin (hard_cases.py), with image counts: where the errors are."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [e["bin"] for e in by_gap]
+    rates = [e["image_all_correct"] if e["images"] else 0.0 for e in by_gap]
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=100)
+    bars = ax.bar(names, rates, color="tab:blue")
+    for bar, e in zip(bars, by_gap):
+        ax.text(bar.get_x() + bar.get_width() / 2, bar.get_height() + 0.01,
+                f"{e['images'] - e['mistakes']}/{e['images']}", ha="center", fontsize=8)
+    ax.axhline(overall, color="k", linestyle="--", linewidth=1,
+               label=f"all images: {overall:.3f}")
+    ax.set_ylim(0, 1.08)
+    ax.set_xlabel("rim gap: smallest |top - rim| of the objects over the container")
+    ax.set_ylabel("image all-correct")
+    ax.set_title("Where the mistakes are: images by how close a box top is to the rim")
+    ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

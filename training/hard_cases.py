@@ -15,10 +15,15 @@ Tags (an image may have several):
 - ``across_wall``: an object lies partly over the container's footprint and partly beyond
   it, i.e. across the wall (fell_outside vs stuck_on_rim: which cluster such a box joins is
   where discovery and the geometric rule of CONTRACTS §2 disagree).
+
+Besides the tags, each image gets its *rim gap*: the smallest |top - rim| over the objects
+above the container's footprint (None without one). Evaluation reports all-correct per
+``RIM_GAP_BINS_MM`` bin, which shows how fast the task gets easier away from the rim.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 from training.chunks import load_chunks
@@ -27,20 +32,49 @@ from training.geometry import object_measurements, outer_footprint_ratio
 
 NEAR_RIM_M = 0.02
 TAGS = ("near_rim", "across_wall")
+# Lower edges of the rim-gap bins (mm); the last bin is open and also holds images with no
+# object above the container.
+RIM_GAP_BINS_MM = (0.0, 2.0, 5.0, 10.0, 20.0)
+
+
+@dataclass(frozen=True)
+class HardCase:
+    """What makes one image hard: its tags and its rim gap (m; None: nothing over the box)."""
+
+    tags: tuple[str, ...]
+    rim_gap_m: float | None
 
 
 def object_tags(m: dict[str, float], outer_ratio: float) -> set[str]:
     """Tags of one object from its ``geometry.object_measurements``."""
     tags = set()
-    if m["com_offset"] < outer_ratio and abs(m["top_above_rim"]) < NEAR_RIM_M:
+    gap = object_rim_gap(m, outer_ratio)
+    if gap is not None and gap < NEAR_RIM_M:
         tags.add("near_rim")
     if 0.0 < m["over_fraction"] < 1.0:
         tags.add("across_wall")
     return tags
 
 
-def episode_tags(data_dir: Path, wanted: set[int]) -> dict[int, list[str]] | None:
-    """Episode -> sorted tags, for the ``wanted`` episodes of the dataset run in ``data_dir``;
+def object_rim_gap(m: dict[str, float], outer_ratio: float) -> float | None:
+    """|top - rim| (m) of an object whose centre of mass is over the container, else None."""
+    return abs(m["top_above_rim"]) if m["com_offset"] < outer_ratio else None
+
+
+def rim_gap_bin(gap_m: float | None) -> int:
+    """Index into ``RIM_GAP_BINS_MM`` of an image's rim gap (None: the last, open bin)."""
+    if gap_m is None:
+        return len(RIM_GAP_BINS_MM) - 1
+    return max(i for i, lo in enumerate(RIM_GAP_BINS_MM) if gap_m * 1000.0 >= lo)
+
+
+def rim_gap_bin_names() -> list[str]:
+    edges = [f"{lo:g}" for lo in RIM_GAP_BINS_MM]
+    return [f"{a}-{b} mm" for a, b in zip(edges, edges[1:])] + [f">= {edges[-1]} mm"]
+
+
+def episode_hard_cases(data_dir: Path, wanted: set[int]) -> dict[int, HardCase] | None:
+    """Episode -> HardCase for the ``wanted`` episodes of the dataset run in ``data_dir``;
     None when the run has no simulation results to read (then there is no breakdown)."""
     data_dir = Path(data_dir)
     manifest_path = data_dir / "manifest.json"
@@ -53,12 +87,17 @@ def episode_tags(data_dir: Path, wanted: set[int]) -> dict[int, list[str]] | Non
         episodes = load_chunks(data_dir / "simulate", cfg.episodes, cfg.chunk_size)
     except (FileNotFoundError, ValueError):
         return None
-    tags = {}
+    cases = {}
     for episode in episodes:
         if int(episode["episode"]) not in wanted:
             continue
         found: set[str] = set()
+        gaps = []
         for obj in episode["objects"]:
-            found |= object_tags(object_measurements(obj, episode, scene), outer_ratio)
-        tags[int(episode["episode"])] = sorted(found)
-    return tags
+            m = object_measurements(obj, episode, scene)
+            found |= object_tags(m, outer_ratio)
+            if (gap := object_rim_gap(m, outer_ratio)) is not None:
+                gaps.append(gap)
+        cases[int(episode["episode"])] = HardCase(tuple(sorted(found)),
+                                                  min(gaps) if gaps else None)
+    return cases
