@@ -65,6 +65,32 @@ def test_train_config_validation_names_the_field():
         TrainConfig(channels_last=1).validate()
     with pytest.raises(ConfigError, match="train.max_width"):
         TrainConfig(max_width=4).validate()
+    with pytest.raises(ConfigError, match="train.near_rim_weight"):
+        TrainConfig(near_rim_weight=0.5).validate()
+
+
+def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():
+    from training.train import epoch_order
+
+    gen = torch.Generator().manual_seed(0)
+    assert sorted(epoch_order(50, None, gen)) == list(range(50))
+    weights = np.repeat([1.0, 3.0, 0.0], 2000)           # thirds: normal, favoured, never
+    order = epoch_order(6000, weights, gen)
+    assert len(order) == 6000 and order.max() < 4000     # weight 0 is never drawn
+    assert 0.72 < np.mean(order >= 2000) < 0.78          # 3 : 1 -> 75 % from the favoured
+
+
+def test_near_rim_sample_weights_follow_the_hard_case_tags(small_run, tmp_path):
+    from training.hard_cases import episode_hard_cases
+    from training.train import near_rim_sample_weights
+
+    indices = np.arange(40)
+    assert near_rim_sample_weights(small_run, indices, 1.0) is None   # uniform: no lookup
+    weights = near_rim_sample_weights(small_run, indices, 3.0)
+    cases = episode_hard_cases(small_run, set(range(40)))
+    assert weights.tolist() == [3.0 if "near_rim" in cases[i].tags else 1.0 for i in indices]
+    with pytest.raises(ValueError, match="simulate"):
+        near_rim_sample_weights(tmp_path, indices, 3.0)           # a run without simulate/
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:

@@ -42,6 +42,7 @@ from task_outcome_ros.labels import (
 from task_outcome_ros.model import DEFAULT_NORMALISATION, build_model, network_input
 from training.config import TrainConfig, save_json, to_dict
 from training.dataset import load_cache, load_manifest
+from training.hard_cases import episode_hard_cases
 
 WARMUP_FRACTION = 0.03
 
@@ -220,6 +221,31 @@ def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch
             "pixel_miou": float(iou.mean()), "iou": iou.round(4).tolist()}
 
 
+def epoch_order(n: int, sample_weights: np.ndarray | None, gen: torch.Generator) -> np.ndarray:
+    """The n training-image indices of one epoch: a permutation, or, with sampling weights, n
+    draws with replacement in proportion to them."""
+    if sample_weights is None:
+        return torch.randperm(n, generator=gen).numpy()
+    return torch.multinomial(torch.as_tensor(sample_weights, dtype=torch.float64), n,
+                             replacement=True, generator=gen).numpy()
+
+
+def near_rim_sample_weights(run_dir: Path, indices: np.ndarray, weight: float
+                            ) -> np.ndarray | None:
+    """Per-image sampling weights: ``weight`` for images tagged near_rim, 1 for the others;
+    None (uniform epochs) when ``weight`` is 1."""
+    if weight == 1.0:
+        return None
+    cases = episode_hard_cases(run_dir, {int(i) for i in indices})
+    if cases is None:
+        raise ValueError(f"{run_dir}: near_rim_weight needs the run's simulate/ results to "
+                         "find the near-rim images")
+    near = np.array(["near_rim" in cases[int(i)].tags for i in indices])
+    print(f"train: {near.sum()} of {len(near)} training images are near the rim; "
+          f"sampled with weight {weight:g}")
+    return np.where(near, weight, 1.0)
+
+
 def _truth_present(manifest: dict, indices: np.ndarray) -> np.ndarray:
     by_index = {im["episode"]: im["present"] for im in manifest["images"]}
     return np.array([[by_index[int(i)][name] for name in OUTCOME_NAMES] for i in indices])
@@ -246,6 +272,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         raise ValueError(f"{run_dir}: the train split is empty; generate more episodes")
     val_truth = _truth_present(manifest, val_arrays["indices"])
     weights = class_weights(train_arrays["labels"], cfg.class_weight_power).to(device)
+    sample_weights = near_rim_sample_weights(run_dir, train_arrays["indices"],
+                                             cfg.near_rim_weight)
 
     model = build_model(cfg.model_args).to(device)
     memory_format = torch.channels_last if cfg.channels_last else torch.contiguous_format
@@ -287,7 +315,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     for epoch in range(start_epoch, cfg.epochs):
         model.train()
         gen = torch.Generator().manual_seed(cfg.seed * 100_003 + epoch)
-        order = torch.randperm(n, generator=gen).numpy()
+        order = epoch_order(n, sample_weights, gen)
         losses = []
         bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{cfg.epochs}",
                    disable=not progress, dynamic_ncols=True, mininterval=2.0)
