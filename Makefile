@@ -31,11 +31,11 @@ test: $(STAMP)
 test-all: $(STAMP)
 	$(PY) -m pytest -q
 
-# Quick retraining profile (<= 20 min on 2 cores; 18 min 22 s measured): 7,500 episodes,
+# Quick retraining profile (<= 20 min on 2 cores; 18 min 20 s measured): 7,500 episodes,
 # 10 epochs at the training defaults (channels-last, bf16 where the CPU has it natively:
-# about 0.5x the fp32 step time here, bench/train_step.py). More scenes, fewer passes: it beat
-# 5,000 x 15 epochs on the seed-1 set (0.953 vs 0.946). The weight average gets a shorter
-# memory (0.993 per step) to match the ~2,200-step schedule.
+# about 0.5x the fp32 step time here, bench/train_step.py; near-rim images drawn 2.5x as
+# often). More scenes, fewer passes: it beat 5,000 x 15 epochs on the seed-1 set. The weight
+# average gets a shorter memory (0.993 per step) to match the ~2,200-step schedule.
 train: $(STAMP)
 	$(PY) -m training run --out runs/quick --episodes 7500 --epochs 10 --ema-decay 0.993 \
 		--max-minutes 15
