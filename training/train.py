@@ -3,9 +3,10 @@
 Class-weighted cross-entropy ignoring 255 (no depth), AdamW with warm-up + cosine decay, an
 exponential moving average (EMA) of the weights that is validated and shipped, label-honest
 augmentation (mirror, small shifts, depth scale, re-drawn axial noise and dropout: all leave
-labels where the objects are), mixed precision where the hardware does it natively (fp16 on
-CUDA, bf16 on CPUs with AVX512-BF16/AMX), channels-last activations, resumable
-self-describing checkpoints after every epoch, a training-curve plot.
+labels where the objects are), images with a box top near the rim drawn more often
+(``near_rim_weight``: where most mistakes are), mixed precision where the hardware does it
+natively (fp16 on CUDA, bf16 on CPUs with AVX512-BF16/AMX), channels-last activations,
+resumable self-describing checkpoints after every epoch, a training-curve plot.
 
 Efficiency on 2 CPU cores (measured, see README): images are decoded and shrunk once into the
 cache (training.dataset.build_cache), so an epoch is pure tensor work; augmentation runs on the
@@ -239,7 +240,7 @@ def near_rim_sample_weights(run_dir: Path, indices: np.ndarray, weight: float
     cases = episode_hard_cases(run_dir, {int(i) for i in indices})
     if cases is None:
         raise ValueError(f"{run_dir}: near_rim_weight needs the run's simulate/ results to "
-                         "find the near-rim images")
+                         "find the near-rim images; --near-rim-weight 1 samples uniformly")
     near = np.array(["near_rim" in cases[int(i)].tags for i in indices])
     print(f"train: {near.sum()} of {len(near)} training images are near the rim; "
           f"sampled with weight {weight:g}")
