@@ -7,8 +7,7 @@ labels where the objects are), images with a box top near the rim drawn more oft
 (``near_rim_weight``: where most mistakes are), the loss of small visible objects boosted
 (``small_object_boost``, small_objects.py: the metric counts objects, not pixels), mixed
 precision where the hardware does it natively (fp16 on CUDA, bf16 on CPUs with
-AVX512-BF16/AMX), channels-last activations, resumable self-describing checkpoints after
-every epoch, a training-curve plot.
+AVX512-BF16/AMX), channels-last activations, resumable self-describing checkpoints after every epoch, a training-curve plot.
 
 Efficiency on 2 CPU cores (measured, see README): images are decoded and shrunk once into the
 cache (training.dataset.build_cache), so an epoch is pure tensor work; augmentation runs on the
