@@ -62,7 +62,6 @@ def main() -> None:
 
     from task_outcome_ros.model import DEFAULT_NORMALISATION, build_model, network_input
     from training.config import TrainConfig
-    from training.small_objects import small_object_boost
     from training.train import (
         WeightAverage,
         autocast_factory,
@@ -77,8 +76,6 @@ def main() -> None:
     arrays, source = load_arrays(cfg.input_size)
     n = len(arrays["depth"])
     weights = class_weights(arrays["labels"], cfg.class_weight_power)
-    if cfg.small_object_boost > 1.0:  # as train() does
-        arrays["boost"] = small_object_boost(arrays["labels"], cfg.small_object_boost)
     nets = {}
     for dtype, channels_last in CONFIGS:
         net = build_model(cfg.model_args)
@@ -94,14 +91,13 @@ def main() -> None:
         net, optim, average = nets[config]
         t0 = time.perf_counter()
         idx = np.sort(torch.randint(0, n, (cfg.batch_size,), generator=gen).numpy())
-        depth, valid, labels, boost = gather_batch(arrays, idx, gen)
+        depth, valid, labels = gather_batch(arrays, idx, gen)
         t1 = time.perf_counter()
         x = network_input(depth, valid, DEFAULT_NORMALISATION)
         if config[1]:
             x = x.contiguous(memory_format=torch.channels_last)
         t2 = time.perf_counter()
-        optimise_step(net, optim, x, labels, weights, autocast_factory(config[0], "cpu"), None,
-                      boost)
+        optimise_step(net, optim, x, labels, weights, autocast_factory(config[0], "cpu"), None)
         t3 = time.perf_counter()
         average.update(net)
         t4 = time.perf_counter()

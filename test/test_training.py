@@ -67,65 +67,6 @@ def test_train_config_validation_names_the_field():
         TrainConfig(max_width=4).validate()
     with pytest.raises(ConfigError, match="train.near_rim_weight"):
         TrainConfig(near_rim_weight=0.5).validate()
-    with pytest.raises(ConfigError, match="train.small_object_boost"):
-        TrainConfig(small_object_boost=0.9).validate()
-
-
-def test_small_object_boost_weighs_objects_by_their_visible_area():
-    from training.small_objects import small_object_boost
-
-    labels = np.zeros((2, 120, 160), np.uint8)      # 160 x 120: objects < 64 px are boosted
-    labels[0, 10:40, 10:40] = SUCCESS               # 900 px: plain loss
-    labels[0, 0:2, 100:104] = FELL_OUTSIDE          # 8 px cut by the border: 64 / 8 = 8
-    labels[0, 50:54, 50:58] = STUCK_ON_RIM          # 32 px: 64 / 32 = 2
-    labels[0, 80:82, 80:81] = STUCK_ON_RIM          # 2 px, another stuck object: capped
-    labels[1, 60:70, 60:70] = CONTAINER             # not an outcome: never boosted
-    boost = small_object_boost(labels, max_boost=5.0)
-    assert boost.dtype == np.float16 and boost.shape == labels.shape
-    assert np.all(boost[0, 10:40, 10:40] == 1.0)
-    assert np.all(boost[0, 0:2, 100:104] == 5.0)    # 8 capped at max_boost
-    assert np.all(boost[0, 50:54, 50:58] == 2.0)
-    assert np.all(boost[0, 80:82, 80:81] == 5.0)
-    assert np.all(boost[0][labels[0] == 0] == 1.0) and np.all(boost[1] == 1.0)
-    assert np.all(small_object_boost(labels, max_boost=1.0) == 1.0)
-    with pytest.raises(ValueError, match="max_boost"):
-        small_object_boost(labels, max_boost=0.5)
-    with pytest.raises(ValueError, match="uint8"):
-        small_object_boost(labels[0], max_boost=2.0)
-
-
-def test_boosted_loss_is_the_plain_loss_with_pixels_counted_boost_times():
-    import torch.nn.functional as F
-
-    from training.train import augment, weighted_cross_entropy
-
-    gen = torch.Generator().manual_seed(0)
-    logits = torch.randn(2, 5, 6, 7, generator=gen)
-    labels = torch.randint(0, 5, (2, 6, 7), generator=gen)
-    labels[0, 0, 0] = 255
-    weights = torch.rand(5, generator=gen) + 0.5
-    plain = F.cross_entropy(logits, labels, weight=weights, ignore_index=255)
-    assert weighted_cross_entropy(logits, labels, weights, None) == plain
-    ones = torch.ones(2, 6, 7)
-    assert torch.allclose(weighted_cross_entropy(logits, labels, weights, ones), plain)
-    # A boost of 3 on one pixel = that pixel three times in a plain weighted mean.
-    boost = ones.clone()
-    boost[1, 2, 3] = 3.0
-    nll = F.cross_entropy(logits, labels, ignore_index=255, reduction="none")
-    w = torch.where(labels == 255, 0.0, weights[labels.clamp(max=4)])
-    w3 = w.clone()
-    w3[1, 2, 3] *= 3
-    expected = (nll * w3).sum() / w3.sum()
-    assert torch.allclose(weighted_cross_entropy(logits, labels, weights, boost), expected)
-    # Augmentation moves the factors with the labels (mirror and shift alike).
-    depth = torch.rand(4, 12, 16) + 1.5
-    valid = torch.ones(4, 12, 16)
-    lab = torch.zeros(4, 12, 16, dtype=torch.long)
-    lab[:, 3:6, 2:5] = FELL_OUTSIDE
-    boost = torch.where(lab == FELL_OUTSIDE, 4.0, 1.0)
-    _, _, lab_a, boost_a = augment(depth, valid, lab, torch.Generator().manual_seed(1), boost)
-    measured = lab_a != 255
-    assert torch.equal(boost_a[measured] == 4.0, lab_a[measured] == FELL_OUTSIDE)
 
 
 def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():

@@ -123,9 +123,6 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--near-rim-weight", type=float, default=None,
                    help="sampling weight of training images with a box top within 2 cm of "
                         "the rim (default 2.5; 1 = uniform)")
-    p.add_argument("--small-object-boost", type=float, default=None,
-                   help="largest per-pixel loss factor of small visible objects (default 8; "
-                        "1 = plain per-pixel loss)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None)
     p.add_argument("--amp", choices=("auto", "bf16", "off"), default=None,
                    help="autocast: auto = fp16 on CUDA, bf16 on CPUs with native bf16, else "
@@ -144,8 +141,7 @@ def resolve_train_config(args: argparse.Namespace):
     fields = {"epochs": "epochs", "batch_size": "batch_size", "lr": "lr",
               "base_width": "base_width", "max_minutes": "max_minutes", "device": "device",
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
-              "channels_last": "channels_last", "near_rim_weight": "near_rim_weight",
-              "small_object_boost": "small_object_boost"}
+              "channels_last": "channels_last", "near_rim_weight": "near_rim_weight"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
     if args.input_size is not None:
         overrides["input_size"] = tuple(args.input_size)

@@ -277,9 +277,6 @@ class TrainConfig:
     # (with replacement). 2.5 on the quick profile: near-rim mistakes 11 -> 8 (validation) and
     # 34 -> 27 (seed-1 set), the others unchanged.
     near_rim_weight: float = 2.5
-    # Per-pixel loss factor of outcome objects smaller than 1,024 px at 640 x 480: ref / area,
-    # capped at this value (small_objects.py); 1 = plain per-pixel loss.
-    small_object_boost: float = 8.0
     augment: bool = True
     device: str = "auto"                  # cpu | cuda | auto
     # auto: fp16 on CUDA, bf16 on a CPU with native bf16 (AVX512-BF16/AMX), else fp32
@@ -308,7 +305,6 @@ class TrainConfig:
         _check_range(o, "max_minutes", self.max_minutes, 0.01, 10_000)
         _check_range(o, "class_weight_power", self.class_weight_power, 0.0, 2.0)
         _check_range(o, "near_rim_weight", self.near_rim_weight, 1.0, 100.0)
-        _check_range(o, "small_object_boost", self.small_object_boost, 1.0, 100.0)
         _check_int(o, "threads", self.threads, 1, 256)
         for name, value, allowed in (("device", self.device, ("cpu", "cuda", "auto")),
                                      ("amp", self.amp, ("auto", "bf16", "off"))):

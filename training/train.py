@@ -4,10 +4,9 @@ Class-weighted cross-entropy ignoring 255 (no depth), AdamW with warm-up + cosin
 exponential moving average (EMA) of the weights that is validated and shipped, label-honest
 augmentation (mirror, small shifts, depth scale, re-drawn axial noise and dropout: all leave
 labels where the objects are), images with a box top near the rim drawn more often
-(``near_rim_weight``: where most mistakes are), the loss of small visible objects boosted
-(``small_object_boost``, small_objects.py: the metric counts objects, not pixels), mixed
-precision where the hardware does it natively (fp16 on CUDA, bf16 on CPUs with
-AVX512-BF16/AMX), channels-last activations, resumable self-describing checkpoints after every epoch, a training-curve plot.
+(``near_rim_weight``: where most mistakes are), mixed precision where the hardware does it
+natively (fp16 on CUDA, bf16 on CPUs with AVX512-BF16/AMX), channels-last activations,
+resumable self-describing checkpoints after every epoch, a training-curve plot.
 
 Efficiency on 2 CPU cores (measured, see README): images are decoded and shrunk once into the
 cache (training.dataset.build_cache), so an epoch is pure tensor work; augmentation runs on the
@@ -45,7 +44,6 @@ from task_outcome_ros.model import DEFAULT_NORMALISATION, build_model, network_i
 from training.config import TrainConfig, save_json, to_dict
 from training.dataset import load_cache, load_manifest
 from training.hard_cases import episode_hard_cases
-from training.small_objects import small_object_boost
 
 WARMUP_FRACTION = 0.03
 
@@ -60,24 +58,18 @@ def class_weights(labels: np.ndarray, power: float) -> torch.Tensor:
 
 
 def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
-            gen: torch.Generator, boost: torch.Tensor | None = None):
-    """Batch augmentation that keeps labels honest. depth/valid float (N,h,w), labels long,
-    ``boost`` (optional, N,h,w) per-pixel loss factors that move with the labels.
-    Returns (depth, valid, labels, boost)."""
+            gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Batch augmentation that keeps labels honest. depth/valid float (N,h,w), labels long."""
     n = depth.shape[0]
     flip = torch.rand(n, generator=gen) < 0.5           # a mirrored scene is a valid scene
     depth = torch.where(flip[:, None, None], depth.flip(-1), depth)
     valid = torch.where(flip[:, None, None], valid.flip(-1), valid)
     labels = torch.where(flip[:, None, None], labels.flip(-1), labels)
-    if boost is not None:
-        boost = torch.where(flip[:, None, None], boost.flip(-1), boost)
     # Shift by a few pixels (camera aim jitter); uncovered border = no depth, ignored label.
     dy, dx = (int(v) for v in torch.randint(-6, 7, (2,), generator=gen))
     if dy or dx:
         depth, valid = depth.roll((dy, dx), (1, 2)), valid.roll((dy, dx), (1, 2))
         labels = labels.roll((dy, dx), (1, 2))
-        if boost is not None:  # the uncovered border is ignored, so its factor does not matter
-            boost = boost.roll((dy, dx), (1, 2))
         for t, fill in ((depth, 0.0), (valid, 0.0), (labels, IGNORE)):
             if dy > 0:
                 t[:, :dy] = fill
@@ -94,7 +86,7 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     # Extra dropout: 0-3 % of pixels lose their depth (labels kept: the net must infer them).
     drop = torch.rand(depth.shape, generator=gen) < 0.03 * torch.rand(n, 1, 1, generator=gen)
     valid = torch.where(drop, torch.zeros_like(valid), valid)
-    return depth, valid, labels, boost
+    return depth, valid, labels
 
 
 def lr_at(step: int, total: int, base: float) -> float:
@@ -165,44 +157,23 @@ def autocast_factory(precision: str, device_type: str):
 
 
 def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None):
-    """(depth, valid, labels, boost) tensors of the cached images ``idx``, augmented unless
-    ``gen`` is None (the training loop's data step; bench/train_step.py times this very
-    function). ``boost`` is None unless ``arrays`` has per-pixel loss factors under "boost"."""
+    """(depth, valid, labels) tensors of the cached images ``idx``, augmented unless ``gen`` is
+    None (the training loop's data step; bench/train_step.py times this very function)."""
     depth = torch.from_numpy(arrays["depth"][idx].astype(np.float32))
     valid = torch.from_numpy(arrays["valid"][idx].astype(np.float32))
     labels = torch.from_numpy(arrays["labels"][idx].astype(np.int64))
-    boost = (torch.from_numpy(arrays["boost"][idx].astype(np.float32))
-             if "boost" in arrays else None)
     if gen is not None:
-        depth, valid, labels, boost = augment(depth, valid, labels, gen, boost)
-    return depth, valid, labels, boost
-
-
-def weighted_cross_entropy(logits: torch.Tensor, labels: torch.Tensor,
-                           weights: torch.Tensor | None, boost: torch.Tensor | None
-                           ) -> torch.Tensor:
-    """Class-weighted cross-entropy ignoring 255, each pixel also scaled by ``boost`` (N,h,w;
-    None = 1). The weighted mean over the measured pixels: with no boost it is exactly
-    ``F.cross_entropy(..., weight=weights, ignore_index=255)``."""
-    if boost is None:
-        return F.cross_entropy(logits, labels, weight=weights, ignore_index=IGNORE)
-    per_pixel = F.cross_entropy(logits, labels, weight=weights, ignore_index=IGNORE,
-                                reduction="none")  # weights[label] * nll, 0 where ignored
-    measured = labels != IGNORE
-    class_w = (weights[labels.clamp(max=NUM_CLASSES - 1)] if weights is not None
-               else torch.ones_like(boost))
-    denominator = (class_w * boost * measured).sum().clamp_min(1e-12)
-    return (per_pixel * boost).sum() / denominator
+        depth, valid, labels = augment(depth, valid, labels, gen)
+    return depth, valid, labels
 
 
 def optimise_step(model, optim, x: torch.Tensor, labels: torch.Tensor,
-                  weights: torch.Tensor | None, autocast, scaler,
-                  boost: torch.Tensor | None = None) -> torch.Tensor:
-    """Forward (under ``autocast``), ``weighted_cross_entropy``, backward and one optimiser
-    step (through the grad scaler when there is one). Returns the loss."""
+                  weights: torch.Tensor | None, autocast, scaler) -> torch.Tensor:
+    """Forward (under ``autocast``), class-weighted cross-entropy ignoring 255, backward and one
+    optimiser step (through the grad scaler when there is one). Returns the loss."""
     with autocast():
         logits = model(x)
-    loss = weighted_cross_entropy(logits.float(), labels, weights, boost)
+    loss = F.cross_entropy(logits.float(), labels, weight=weights, ignore_index=IGNORE)
     optim.zero_grad(set_to_none=True)
     if scaler is not None:
         scaler.scale(loss).backward()
@@ -304,9 +275,6 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     weights = class_weights(train_arrays["labels"], cfg.class_weight_power).to(device)
     sample_weights = near_rim_sample_weights(run_dir, train_arrays["indices"],
                                              cfg.near_rim_weight)
-    if cfg.small_object_boost > 1.0:
-        train_arrays["boost"] = small_object_boost(train_arrays["labels"],
-                                                   cfg.small_object_boost)
 
     model = build_model(cfg.model_args).to(device)
     memory_format = torch.channels_last if cfg.channels_last else torch.contiguous_format
@@ -355,14 +323,12 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         t_epoch = time.perf_counter()
         for b in bar:
             idx = np.sort(order[b * cfg.batch_size:(b + 1) * cfg.batch_size])
-            depth, valid, labels, boost = gather_batch(train_arrays, idx,
-                                                       gen if cfg.augment else None)
+            depth, valid, labels = gather_batch(train_arrays, idx, gen if cfg.augment else None)
             x = network_input(depth, valid, norm).to(device, memory_format=memory_format)
             labels = labels.to(device)
-            boost = boost.to(device) if boost is not None else None
             for group in optim.param_groups:
                 group["lr"] = lr_at(epoch * steps_per_epoch + b, total_steps, cfg.lr)
-            loss = optimise_step(model, optim, x, labels, weights, autocast, scaler, boost)
+            loss = optimise_step(model, optim, x, labels, weights, autocast, scaler)
             average.update(model)
             losses.append(loss.item())
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
