@@ -15,10 +15,10 @@ images). It follows the model: the stop-7 model gained up to 256 px (0.956 / 0.9
 0.964 / 0.956 at 256 on validation / seed-1); the 25-epoch uniform-sampling model up to 512
 px (0.968 / 0.962 without, 0.976 / 0.972 at 512, 0.978 / 0.974 at 1024, but 0.983 vs 0.975 on
 the training images). The shipped model, trained with near-rim images drawn 2.5x as often,
-gains up to a larger size. Validation: 0.966 without,
-0.970 at 256, 0.976 at 512, 0.978 at 768, **0.980 at 1024**, 0.978 at 1536; training images:
-0.976 at 512 and at 1024, 0.972 at 1536. So 1024 px; the seed-1 set agrees (0.965 without,
-0.971 / 0.973 / 0.976 at 256 / 512 / 1024). Larger is not free: a success box half hidden
+gains up to a larger size. Validation: 0.966 without, 0.970 at 256, 0.976 at 512, 0.978 at
+768, **0.980 at 1024**, 0.978 at 1536; training images: 0.976 at 512 and at 1024, 0.972 at
+1536. So 1024 px; the seed-1 set agrees (0.965 without, 0.971 / 0.973 / 0.976 at 256 / 512 /
+1024). Larger is not free: a success box half hidden
 behind a stuck one shows a small visible part that touches the stuck box, and it gets
 absorbed (that is what 1536 px loses). Merging whole connected objects to their majority
 outcome instead *lost* 1-8 points: touching boxes with different outcomes merge.
