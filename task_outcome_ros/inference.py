@@ -95,7 +95,15 @@ def count_objects(labels: np.ndarray, outcome_id: int, min_pixels: int,
     if depth_m is not None and depth_m.shape != labels.shape[:2]:
         raise ValueError(f"depth shape {depth_m.shape} != labels shape {labels.shape}")
     mask = (labels == outcome_id).astype(np.uint8)
-    n, cc, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    # Label components only inside the class's bounding box: outcome objects cover a small
+    # part of the frame, and labelling the whole 640 x 480 frame was most of postprocess.
+    x0, y0, bw, bh = cv2.boundingRect(mask)
+    if bw == 0 or bh == 0:
+        return []
+    n, cc, stats, centroids = cv2.connectedComponentsWithStats(
+        mask[y0:y0 + bh, x0:x0 + bw], connectivity=8)
+    if depth_m is not None:
+        depth_m = depth_m[y0:y0 + bh, x0:x0 + bw]
     found = []
     for k in range(1, n):
         area = int(stats[k, cv2.CC_STAT_AREA])
@@ -110,7 +118,7 @@ def count_objects(labels: np.ndarray, outcome_id: int, min_pixels: int,
             median = float(np.median(values)) if values.size else None
         found.append(DetectedObject(
             outcome=CLASS_NAMES[outcome_id], pixel_count=area,
-            centroid_px=(float(centroids[k, 0]), float(centroids[k, 1])),
+            centroid_px=(float(centroids[k, 0]) + x0, float(centroids[k, 1]) + y0),
             median_depth_m=median))
     found.sort(key=lambda o: -o.pixel_count)
     return found

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -141,6 +142,27 @@ def test_count_objects_on_hand_made_labels() -> None:
     assert count_objects(labels, FELL_OUTSIDE, 50)[0].median_depth_m is None  # no depth given
     with pytest.raises(ValueError):
         count_objects(labels, 9, 1)
+
+
+def test_count_objects_matches_whole_frame_labelling() -> None:
+    """count_objects labels only the class's bounding box; it must equal labelling it all."""
+    rng = np.random.default_rng(3)
+    labels = np.zeros((120, 160), np.uint8)
+    for _ in range(6):
+        y, x = rng.integers(30, 100), rng.integers(40, 140)
+        labels[y:y + rng.integers(3, 15), x:x + rng.integers(3, 15)] = SUCCESS
+    depth = rng.uniform(1.5, 2.5, labels.shape).astype(np.float32)
+    n, cc, stats, centroids = cv2.connectedComponentsWithStats(
+        (labels == SUCCESS).astype(np.uint8), connectivity=8)
+    expected = sorted(((int(stats[k, cv2.CC_STAT_AREA]), tuple(centroids[k]),
+                        float(np.median(depth[cc == k]))) for k in range(1, n)
+                       if stats[k, cv2.CC_STAT_AREA] >= 10), key=lambda e: -e[0])
+    found = count_objects(labels, SUCCESS, 10, depth)
+    assert len(found) == len(expected) > 1
+    for obj, (area, centroid, median) in zip(found, expected):
+        assert obj.pixel_count == area
+        assert obj.centroid_px == pytest.approx(centroid)
+        assert obj.median_depth_m == pytest.approx(median)
 
 
 def test_predict_labels_shape_and_dtype(segmenter: OutcomeSegmenter) -> None:
