@@ -23,9 +23,11 @@ import pytest
 from task_outcome_ros.labels import (
     BACKGROUND,
     CONTAINER,
+    FELL_OUTSIDE,
     IGNORE,
     OUTCOME_IDS,
     OUTCOME_NAMES,
+    SUCCESS,
     outcome_pixel_counts,
     outcomes_present,
 )
@@ -476,6 +478,27 @@ def test_cache_and_dataset_shapes(run, tmp_path):
     assert len(val) == EPISODES - n_train
     with pytest.raises(ValueError, match="split"):
         OutcomeDataset(copy, "test", size, workers=1)
+
+
+def test_downsample_labels_votes_by_area_ignoring_holes():
+    from training.dataset import downsample_labels
+
+    labels = np.zeros((480, 640), np.uint8)
+    labels[0:4, 0:3] = SUCCESS            # 12 of a 4 x 4 block: success wins the block
+    labels[0:4, 3] = IGNORE               # holes do not vote
+    labels[4:14, 0:10] = IGNORE           # a region of nothing but holes stays ignored
+    labels[100:200, 200:400] = FELL_OUTSIDE     # a large object survives any factor
+    small = downsample_labels(labels, (160, 120))
+    assert small[0, 0] == SUCCESS and small[1, 0] == IGNORE and small[0, 1] == BACKGROUND
+    assert small[30:50, 50:100].min() == small[30:50, 50:100].max() == FELL_OUTSIDE
+    # A non-integer factor (10/3) weighs each source pixel by its share of the output pixel.
+    odd = downsample_labels(labels, (192, 144))
+    assert odd.shape == (144, 192)
+    assert odd[0, 0] == SUCCESS and odd[2, 0] == IGNORE
+    assert odd[31:59, 61:119].min() == odd[31:59, 61:119].max() == FELL_OUTSIDE
+    share = (odd == FELL_OUTSIDE).sum() / odd.size
+    assert share == pytest.approx((labels == FELL_OUTSIDE).sum() / labels.size, rel=0.03)
+    assert np.array_equal(downsample_labels(labels, (640, 480)), labels)
 
 
 # ---- memory and import boundaries -----------------------------------------------------------

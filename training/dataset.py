@@ -57,23 +57,30 @@ def load_manifest(run_dir: Path) -> dict:
 
 
 def downsample_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Shrink a label image to (W, H) by majority vote over each block, ignoring 255.
+    """Shrink a label image to (W, H) by an area-weighted majority vote, ignoring 255.
 
     Nearest-neighbour would keep whichever pixel the grid hits, often a noise hole (255) or a
-    one-pixel edge; a vote keeps what most of the block shows. Non-integer factors fall back to
-    nearest-neighbour.
+    one-pixel edge; a vote keeps what most of the block shows. Integer factors vote over exact
+    blocks; other factors (e.g. 640 x 480 -> 192 x 144) weigh each source pixel by the share
+    of it that falls in the output pixel (OpenCV's area resize of each class's mask). An
+    output pixel that covers only ignored pixels is ignored.
     """
     import cv2
 
     w, h = size
     H, W = labels.shape
+    if (H, W) == (h, w):
+        return labels.copy()
     if H % h or W % w:
-        return cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST)
-    fy, fx = H // h, W // w
-    blocks = labels.reshape(h, fy, w, fx)
-    counts = np.stack([(blocks == c).sum(axis=(1, 3)) for c in range(NUM_CLASSES)])
-    out = counts.argmax(axis=0).astype(np.uint8)
-    out[counts.max(axis=0) == 0] = IGNORE
+        shares = np.stack([cv2.resize((labels == c).astype(np.float32), (w, h),
+                                      interpolation=cv2.INTER_AREA)
+                           for c in range(NUM_CLASSES)])
+    else:
+        fy, fx = H // h, W // w
+        blocks = labels.reshape(h, fy, w, fx)
+        shares = np.stack([(blocks == c).sum(axis=(1, 3)) for c in range(NUM_CLASSES)])
+    out = shares.argmax(axis=0).astype(np.uint8)
+    out[shares.max(axis=0) <= 0] = IGNORE
     return out
 
 
