@@ -80,6 +80,24 @@ def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():
     assert 0.72 < np.mean(order >= 2000) < 0.78          # 3 : 1 -> 75 % from the favoured
 
 
+def test_augmentation_keeps_labels_and_redraws_noise_at_the_sensors_level():
+    from training.train import SENSOR_NOISE_PER_Z2, augment
+
+    gen = torch.Generator().manual_seed(0)
+    depth = torch.full((64, 120, 160), 2.0)
+    labels = torch.zeros((64, 120, 160), dtype=torch.long)
+    labels[:, 40:80, 60:100] = SUCCESS
+    out, valid, out_labels = augment(depth.clone(), torch.ones_like(depth), labels, gen)
+    # Labels only move with the image (mirror, shift): same object area, nothing relabelled.
+    assert set(out_labels.unique().tolist()) <= {0, SUCCESS, 255}
+    assert ((out_labels == SUCCESS).sum((1, 2)) == 40 * 40).all()
+    inner = out[:, 10:-10, 10:-10]
+    sd = (inner - inner.mean((1, 2), keepdim=True)).std((1, 2))
+    # At 160 x 120 one working pixel averages 16 sensor pixels: sd / z^2 at most 0.0016 / 4.
+    ceiling = SENSOR_NOISE_PER_Z2 / 4 * 2.0 ** 2
+    assert sd.max() <= 1.1 * ceiling and sd.min() < 0.3 * ceiling and sd.mean() > 0.3 * ceiling
+
+
 def test_near_rim_sample_weights_follow_the_hard_case_tags(small_run, tmp_path):
     from training.hard_cases import episode_hard_cases
     from training.train import near_rim_sample_weights
