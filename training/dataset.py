@@ -69,8 +69,6 @@ def downsample_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
     w, h = size
     H, W = labels.shape
-    if (H, W) == (h, w):
-        return labels.copy()
     if H % h or W % w:
         shares = np.stack([cv2.resize((labels == c).astype(np.float32), (w, h),
                                       interpolation=cv2.INTER_AREA)
