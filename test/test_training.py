@@ -98,6 +98,18 @@ def test_augmentation_keeps_labels_and_redraws_noise_at_the_sensors_level():
     assert sd.max() <= 1.1 * ceiling and sd.min() < 0.3 * ceiling and sd.mean() > 0.3 * ceiling
 
 
+def test_augmentation_noise_level_zero_adds_no_noise():
+    from training.train import augment
+
+    depth = torch.full((8, 120, 160), 2.0)
+    out, _, _ = augment(depth.clone(), torch.ones_like(depth), torch.zeros_like(depth).long(),
+                        torch.Generator().manual_seed(0), noise_level=0.0)
+    inner = out[:, 10:-10, 10:-10]
+    # Only the whole-scene scale is left: every image flat, within +-4 % of 2 m.
+    assert torch.allclose(inner, inner[:, :1, :1].expand_as(inner))
+    assert ((inner - 2.0).abs() <= 0.08 + 1e-6).all()
+
+
 def test_near_rim_sample_weights_follow_the_hard_case_tags(small_run, tmp_path):
     from training.hard_cases import episode_hard_cases
     from training.train import near_rim_sample_weights
@@ -160,10 +172,28 @@ def test_short_real_training_improves_the_loss_and_evaluates(small_run):
     assert (small_run / "eval" / "rim_gap.png").exists()
     assert (small_run / "eval" / "confusion.png").exists()
 
-    # Resuming a finished run changes nothing; a different config is refused clearly.
+    # Resuming a finished run changes nothing, also with another time budget (how a run is
+    # executed, not what it learns); a different recipe is refused, saying what differs.
+    r = _cli("train", "--out", str(small_run), "--epochs", "3", "--batch-size", "8",
+             "--lr", "0.005", "--device", "cpu", "--max-minutes", "30")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert len(json.loads((small_run / "train" / "history.json").read_text())) == 3
     r = _cli("train", "--out", str(small_run), "--epochs", "4", "--batch-size", "8",
              "--lr", "0.005", "--device", "cpu")
-    assert r.returncode == 2 and "another config" in r.stderr
+    assert r.returncode == 2 and "another config" in r.stderr and "epochs: 3 -> 4" in r.stderr
+
+
+def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
+    from training.config import to_dict
+    from training.train import resume_differences
+
+    cfg = TrainConfig(amp="auto")
+    saved = json.loads(json.dumps(to_dict(TrainConfig(amp="bf16", max_minutes=5.0))))
+    assert resume_differences(saved, cfg, "bf16", "bf16") == []
+    assert resume_differences(saved, cfg, "bf16", "fp32") == ["precision: bf16 -> fp32"]
+    old = {k: v for k, v in saved.items() if k != "lovasz_weight"}     # predates the field
+    assert resume_differences(old, cfg, "bf16", "bf16") == [
+        "lovasz_weight: '<not recorded>' -> 0.0"]
 
 
 def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_path):

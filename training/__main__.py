@@ -123,6 +123,12 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--near-rim-weight", type=float, default=None,
                    help="sampling weight of training images with a box top within 2 cm of "
                         "the rim (default 2.5; 1 = uniform)")
+    p.add_argument("--aug-noise", type=float, default=None,
+                   help="re-drawn training noise per image: up to this many times the "
+                        "sensor's own (default 1; 0 = off)")
+    p.add_argument("--lovasz-weight", type=float, default=None,
+                   help="weight of the per-image outcome IoU (Lovász) loss added to "
+                        "cross-entropy (default 0 = off)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None)
     p.add_argument("--amp", choices=("auto", "bf16", "off"), default=None,
                    help="autocast: auto = fp16 on CUDA, bf16 on CPUs with native bf16, else "
@@ -141,7 +147,8 @@ def resolve_train_config(args: argparse.Namespace):
     fields = {"epochs": "epochs", "batch_size": "batch_size", "lr": "lr",
               "base_width": "base_width", "max_minutes": "max_minutes", "device": "device",
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
-              "channels_last": "channels_last", "near_rim_weight": "near_rim_weight"}
+              "channels_last": "channels_last", "near_rim_weight": "near_rim_weight",
+              "aug_noise": "aug_noise", "lovasz_weight": "lovasz_weight"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
     if args.input_size is not None:
         overrides["input_size"] = tuple(args.input_size)

@@ -278,6 +278,12 @@ class TrainConfig:
     # 34 -> 27 (seed-1 set), the others unchanged.
     near_rim_weight: float = 2.5
     augment: bool = True
+    # Re-drawn axial noise per training image: U(0, aug_noise) x the sensor's own noise at the
+    # working size (train.SENSOR_NOISE_PER_Z2). Until stop 12 it was ~7x the sensor's.
+    aug_noise: float = 1.0
+    # Weight of the per-image outcome IoU (Lovász-softmax) loss added to cross-entropy
+    # (losses.py); 0 = cross-entropy alone.
+    lovasz_weight: float = 0.0
     device: str = "auto"                  # cpu | cuda | auto
     # auto: fp16 on CUDA, bf16 on a CPU with native bf16 (AVX512-BF16/AMX), else fp32
     # (train.resolve_precision). bf16 | off force it.
@@ -305,6 +311,8 @@ class TrainConfig:
         _check_range(o, "max_minutes", self.max_minutes, 0.01, 10_000)
         _check_range(o, "class_weight_power", self.class_weight_power, 0.0, 2.0)
         _check_range(o, "near_rim_weight", self.near_rim_weight, 1.0, 100.0)
+        _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
+        _check_range(o, "lovasz_weight", self.lovasz_weight, 0.0, 100.0)
         _check_int(o, "threads", self.threads, 1, 256)
         for name, value, allowed in (("device", self.device, ("cpu", "cuda", "auto")),
                                      ("amp", self.amp, ("auto", "bf16", "off"))):

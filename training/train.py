@@ -44,6 +44,7 @@ from task_outcome_ros.model import DEFAULT_NORMALISATION, build_model, network_i
 from training.config import TrainConfig, save_json, to_dict
 from training.dataset import load_cache, load_manifest
 from training.hard_cases import episode_hard_cases
+from training.losses import outcome_lovasz_loss
 
 WARMUP_FRACTION = 0.03
 # The sensor's axial noise per 640 x 480 pixel, as sd / z^2 (robust sd of noisy - clean depth
@@ -64,8 +65,12 @@ def class_weights(labels: np.ndarray, power: float) -> torch.Tensor:
 
 
 def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
-            gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Batch augmentation that keeps labels honest. depth/valid float (N,h,w), labels long."""
+            gen: torch.Generator, noise_level: float = 1.0
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Batch augmentation that keeps labels honest. depth/valid float (N,h,w), labels long.
+
+    ``noise_level`` (``TrainConfig.aug_noise``): each image gets re-drawn axial noise of
+    U(0, noise_level) times the sensor's own noise at this size; 0 turns it off."""
     n = depth.shape[0]
     flip = torch.rand(n, generator=gen) < 0.5           # a mirrored scene is a valid scene
     depth = torch.where(flip[:, None, None], depth.flip(-1), depth)
@@ -86,12 +91,12 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
             elif dx < 0:
                 t[:, :, dx:] = fill
     # Whole-scene distance change (+-4 %) and re-drawn axial noise growing with z^2: up to
-    # the sensor's own noise at this working size (0 to 1x per image), on top of the noise
+    # the sensor's own noise at this working size (0 to 1x per image by default), on top of the noise
     # already in the image. (Until stop 12 this was 0.003 z^2 per working pixel, about 7x the
     # real noise at 160 x 120, which buried the millimetres that tell stuck from success.)
     scale = 1.0 + 0.08 * (torch.rand(n, 1, 1, generator=gen) - 0.5)
     per_pixel = SENSOR_NOISE_PER_Z2 * math.sqrt(depth.shape[1] * depth.shape[2] / REFERENCE_PIXELS)
-    sigma = per_pixel * torch.rand(n, 1, 1, generator=gen) * depth ** 2
+    sigma = per_pixel * noise_level * torch.rand(n, 1, 1, generator=gen) * depth ** 2
     depth = depth * scale + torch.randn(depth.shape, generator=gen) * sigma
     # Extra dropout: 0-3 % of pixels lose their depth (labels kept: the net must infer them).
     drop = torch.rand(depth.shape, generator=gen) < 0.03 * torch.rand(n, 1, 1, generator=gen)
@@ -166,24 +171,29 @@ def autocast_factory(precision: str, device_type: str):
     return lambda: torch.autocast(device_type, dtype=dtype)
 
 
-def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None):
+def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
+                 noise_level: float = 1.0):
     """(depth, valid, labels) tensors of the cached images ``idx``, augmented unless ``gen`` is
     None (the training loop's data step; bench/train_step.py times this very function)."""
     depth = torch.from_numpy(arrays["depth"][idx].astype(np.float32))
     valid = torch.from_numpy(arrays["valid"][idx].astype(np.float32))
     labels = torch.from_numpy(arrays["labels"][idx].astype(np.int64))
     if gen is not None:
-        depth, valid, labels = augment(depth, valid, labels, gen)
+        depth, valid, labels = augment(depth, valid, labels, gen, noise_level)
     return depth, valid, labels
 
 
 def optimise_step(model, optim, x: torch.Tensor, labels: torch.Tensor,
-                  weights: torch.Tensor | None, autocast, scaler) -> torch.Tensor:
-    """Forward (under ``autocast``), class-weighted cross-entropy ignoring 255, backward and one
+                  weights: torch.Tensor | None, autocast, scaler, lovasz_weight: float = 0.0
+                  ) -> torch.Tensor:
+    """Forward (under ``autocast``), class-weighted cross-entropy ignoring 255 (plus
+    ``lovasz_weight`` x the per-image outcome IoU loss, ``losses.py``), backward and one
     optimiser step (through the grad scaler when there is one). Returns the loss."""
     with autocast():
         logits = model(x)
     loss = F.cross_entropy(logits.float(), labels, weight=weights, ignore_index=IGNORE)
+    if lovasz_weight > 0:
+        loss = loss + lovasz_weight * outcome_lovasz_loss(logits, labels)
     optim.zero_grad(set_to_none=True)
     if scaler is not None:
         scaler.scale(loss).backward()
@@ -257,6 +267,27 @@ def near_rim_sample_weights(run_dir: Path, indices: np.ndarray, weight: float
     return np.where(near, weight, 1.0)
 
 
+# Fields that say how a run is executed, not what it learns: a resume may change them. amp is
+# compared by the precision it resolves to ("auto" and "bf16" are the same run on a CPU with
+# native bf16), device through that precision too.
+RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
+
+
+def resume_differences(saved: dict, cfg: TrainConfig, saved_precision: str | None,
+                       precision: str) -> list[str]:
+    """What differs between a saved run's training config and ``cfg``, as "field: old -> new"
+    lines; empty when the run may be resumed. A field the saved run did not record (it
+    predates the field) counts as a difference: its value then is unknown."""
+    now = json.loads(json.dumps(to_dict(cfg)))
+    missing = "<not recorded>"
+    differences = [f"{k}: {saved.get(k, missing)!r} -> {now.get(k, missing)!r}"
+                   for k in sorted((set(saved) | set(now)) - RESUME_FREE_FIELDS)
+                   if saved.get(k, missing) != now.get(k, missing)]
+    if saved_precision != precision:
+        differences.append(f"precision: {saved_precision} -> {precision}")
+    return differences
+
+
 def _truth_present(manifest: dict, indices: np.ndarray) -> np.ndarray:
     by_index = {im["episode"]: im["present"] for im in manifest["images"]}
     return np.array([[by_index[int(i)][name] for name in OUTCOME_NAMES] for i in indices])
@@ -308,9 +339,12 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     last_path, best_path = out / "last.pt", out / "best.pt"
     if resume and last_path.exists():
         state = checkpoint.load(last_path, device=str(device))
-        if state.train_config.get("train") != json.loads(json.dumps(to_dict(cfg))):
-            raise ValueError(f"{last_path} was trained with another config; use a new --out "
-                             "or delete it to start over")
+        differences = resume_differences(state.train_config.get("train") or {}, cfg,
+                                         state.extra.get("precision"), precision)
+        if differences:
+            raise ValueError(f"{last_path} was trained with another config "
+                             f"({'; '.join(differences)}); use a new --out or delete it to "
+                             "start over")
         # last.pt's model is the average (what validation saw); the raw weights, the optimizer
         # and the average's update count live in its training state.
         average.module.load_state_dict(state.model.state_dict())
@@ -333,12 +367,14 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         t_epoch = time.perf_counter()
         for b in bar:
             idx = np.sort(order[b * cfg.batch_size:(b + 1) * cfg.batch_size])
-            depth, valid, labels = gather_batch(train_arrays, idx, gen if cfg.augment else None)
+            depth, valid, labels = gather_batch(train_arrays, idx, gen if cfg.augment else None,
+                                                cfg.aug_noise)
             x = network_input(depth, valid, norm).to(device, memory_format=memory_format)
             labels = labels.to(device)
             for group in optim.param_groups:
                 group["lr"] = lr_at(epoch * steps_per_epoch + b, total_steps, cfg.lr)
-            loss = optimise_step(model, optim, x, labels, weights, autocast, scaler)
+            loss = optimise_step(model, optim, x, labels, weights, autocast, scaler,
+                                 cfg.lovasz_weight)
             average.update(model)
             losses.append(loss.item())
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")

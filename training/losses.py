@@ -1,0 +1,49 @@
+"""Per-image outcome IoU loss (Lovász-softmax), added to the pixel cross-entropy.
+
+Why: the metric that matters is image-level (is each outcome present?), but cross-entropy
+weighs pixels. A 300-pixel stuck_on_rim fringe painted on a success box costs cross-entropy
+little, because it is a few hundred of the batch's 600,000 pixels, yet it makes the presence
+rule report an outcome that is not there. The Lovász-softmax loss (Berman, Rannen Triki &
+Blaschko, CVPR 2018) is a convex surrogate of 1 - IoU; taken per image and per outcome class,
+every image's outcome maps count alike, whatever their size:
+
+- for an outcome present in the image, it is the surrogate of 1 - IoU of that outcome;
+- for an absent outcome, IoU is 0 as soon as one pixel carries it, and the loss reduces to the
+  largest probability of that outcome anywhere in the image.
+
+Only the three outcome classes are scored (background and container are large and easy:
+cross-entropy handles them), and only each row's ``top_k`` largest errors are sorted. The
+Lovász gradient at a sorted position depends only on the positions before it, so truncation
+drops just the smallest errors' terms; a full sort of all 19,200 working pixels made a training
+step 23 % slower, the top 2,048 about 7 % (measured on the 2-core EPYC, batch 32).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from task_outcome_ros.labels import IGNORE, OUTCOME_IDS
+
+
+def outcome_lovasz_loss(logits: torch.Tensor, labels: torch.Tensor, top_k: int = 2048
+                        ) -> torch.Tensor:
+    """Mean over images and outcome classes of the Lovász-softmax surrogate of 1 - IoU.
+
+    logits (N, C, H, W), labels (N, H, W) long with ``IGNORE`` for pixels without depth (they
+    take no part). Returns a scalar.
+    """
+    classes = sorted(OUTCOME_IDS.values())
+    prob = logits.float().softmax(1)[:, classes].flatten(2)              # N, K, P
+    flat = labels.flatten(1)
+    keep = (flat != IGNORE)[:, None]
+    truth = torch.stack([flat == c for c in classes], 1).float()        # N, K, P
+    # Ignored pixels get error -1, so they sort last and carry no gradient.
+    errors = torch.where(keep, (truth - prob).abs(), torch.full_like(prob, -1.0))
+    errors, order = errors.topk(min(top_k, errors.shape[-1]), dim=-1)
+    truth_sorted = truth.gather(-1, order)
+    area = truth.sum(-1, keepdim=True)
+    # Jaccard loss after including the first i sorted pixels in the prediction; its
+    # increments are the Lovász extension's weights.
+    jaccard = 1.0 - (area - truth_sorted.cumsum(-1)) / (area + (1.0 - truth_sorted).cumsum(-1))
+    weights = torch.cat([jaccard[..., :1], jaccard[..., 1:] - jaccard[..., :-1]], dim=-1)
+    return (errors.clamp_min(0.0) * weights).sum(-1).mean()
