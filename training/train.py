@@ -92,8 +92,9 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
                 t[:, :, dx:] = fill
     # Whole-scene distance change (+-4 %) and re-drawn axial noise growing with z^2: up to
     # the sensor's own noise at this working size (0 to 1x per image by default), on top of
-    # the noise already in the image. (Until stop 12 this was 0.003 z^2 per working pixel, about 7x the
-    # real noise at 160 x 120, which buried the millimetres that tell stuck from success.)
+    # the noise already in the image. (Until stop 12 this was 0.003 z^2 per working pixel,
+    # about 7x the real noise at 160 x 120, which buried the millimetres that tell stuck from
+    # success.)
     scale = 1.0 + 0.08 * (torch.rand(n, 1, 1, generator=gen) - 0.5)
     per_pixel = SENSOR_NOISE_PER_Z2 * math.sqrt(depth.shape[1] * depth.shape[2] / REFERENCE_PIXELS)
     sigma = per_pixel * noise_level * torch.rand(n, 1, 1, generator=gen) * depth ** 2
