@@ -193,7 +193,7 @@ def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
     assert resume_differences(saved, cfg, "bf16", "fp32") == ["precision: bf16 -> fp32"]
     old = {k: v for k, v in saved.items() if k != "lovasz_weight"}     # predates the field
     assert resume_differences(old, cfg, "bf16", "bf16") == [
-        "lovasz_weight: '<not recorded>' -> 0.0"]
+        "lovasz_weight: '<not recorded>' -> 0.5"]
 
 
 def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_path):

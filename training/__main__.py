@@ -128,7 +128,7 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                         "sensor's own (default 1; 0 = off)")
     p.add_argument("--lovasz-weight", type=float, default=None,
                    help="weight of the per-image outcome IoU (Lovász) loss added to "
-                        "cross-entropy (default 0 = off)")
+                        "cross-entropy (default 0.5; 0 = off)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None)
     p.add_argument("--amp", choices=("auto", "bf16", "off"), default=None,
                    help="autocast: auto = fp16 on CUDA, bf16 on CPUs with native bf16, else "
