@@ -1,16 +1,18 @@
-"""Benchmark one training step of the outcome FCN on this CPU: where the time goes, and whether
-bf16 autocast or channels-last memory format would help.
+"""Benchmark one training step of the outcome FCN on this CPU: where the time goes, whether
+bf16 autocast or channels-last memory format would help, and what the IoU loss costs.
 
-    python bench/train_step.py              # 4 configurations x 24 timed steps (~3 min on 2 cores)
+    python bench/train_step.py              # 5 configurations x 24 timed steps (~4 min on 2 cores)
     python bench/train_step.py --steps 48
     python bench/train_step.py --quick      # a smoke run
 
 A step is what ``training.train`` does per batch of 32 at 160 x 120 (the ``TrainConfig``
 defaults), through the training loop's own functions: ``gather_batch`` (gather + augment),
 ``network_input`` (incl. the floor fit for the height channel), ``optimise_step`` (forward +
-class-weighted loss + backward + AdamW) and the weight-average update. The four network
-configurations (fp32 / bf16 autocast, each contiguous / channels-last) run interleaved in
-rotating blocks so load changes on the shared machine hit them alike. Batches come from the
+class-weighted loss + backward + AdamW) and the weight-average update. The network
+configurations (fp32 / bf16 autocast, each contiguous / channels-last, with cross-entropy
+alone; and the training default, bf16 + channels-last with the per-image outcome IoU loss of
+training/losses.py added) run interleaved in rotating blocks so load changes on the shared
+machine hit them alike. Batches come from the
 default run's working-size cache when it exists, else synthetic depth.
 
 Writes the ``training`` section of bench/results.json.
@@ -30,7 +32,9 @@ from common import percentiles, record  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-CONFIGS = (("fp32", False), ("fp32", True), ("bf16", False), ("bf16", True))
+# (autocast dtype, channels-last, IoU loss on); the last one is the TrainConfig default.
+CONFIGS = (("fp32", False, False), ("fp32", True, False), ("bf16", False, False),
+           ("bf16", True, False), ("bf16", True, True))
 
 
 def load_arrays(size: tuple[int, int]) -> tuple[dict, str]:
@@ -77,12 +81,13 @@ def main() -> None:
     n = len(arrays["depth"])
     weights = class_weights(arrays["labels"], cfg.class_weight_power)
     nets = {}
-    for dtype, channels_last in CONFIGS:
+    for dtype, channels_last, _ in CONFIGS:
         net = build_model(cfg.model_args)
         if channels_last:
             net = net.to(memory_format=torch.channels_last)
         optim = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-        nets[dtype, channels_last] = (net.train(), optim, WeightAverage(net, cfg.ema_decay))
+        nets[dtype, channels_last, _] = (net.train(), optim,
+                                         WeightAverage(net, cfg.ema_decay))
     timings = {c: {"data": [], "network_input": [], "step": [], "average": [], "total": []}
                for c in CONFIGS}
     gen = torch.Generator().manual_seed(0)
@@ -97,7 +102,8 @@ def main() -> None:
         if config[1]:
             x = x.contiguous(memory_format=torch.channels_last)
         t2 = time.perf_counter()
-        optimise_step(net, optim, x, labels, weights, autocast_factory(config[0], "cpu"), None)
+        optimise_step(net, optim, x, labels, weights, autocast_factory(config[0], "cpu"), None,
+                      cfg.lovasz_weight if config[2] else 0.0)
         t3 = time.perf_counter()
         average.update(net)
         t4 = time.perf_counter()
@@ -119,20 +125,23 @@ def main() -> None:
     wall = time.perf_counter() - started
 
     def name(config) -> str:
-        return f"{config[0]}_{'channels_last' if config[1] else 'contiguous'}"
+        return (f"{config[0]}_{'channels_last' if config[1] else 'contiguous'}"
+                + ("_iou_loss" if config[2] else ""))
 
     results = {name(c): {k: percentiles(v) for k, v in timings[c].items()} for c in CONFIGS}
     base = results["fp32_contiguous"]["total"]["p50"]
     record("training", {
         "batch": cfg.batch_size, "input_size": list(cfg.input_size), "threads": cfg.threads,
         "model_args": cfg.model_args, "data": source, "timed_steps_per_config": steps,
+        "iou_loss_weight": cfg.lovasz_weight,
         "wall_s": round(wall, 1), "configs": results,
         "total_p50_over_fp32_contiguous": {k: round(v["total"]["p50"] / base, 2)
                                            for k, v in results.items()},
         "epoch_s_estimate_fp32": round(base / 1e3 * 9500 / cfg.batch_size, 1),
         "versions": {"torch": torch.__version__},
         "note": "ms per training step of one batch; step = training.train.optimise_step "
-                "(forward + class-weighted loss + backward + AdamW); "
+                "(forward + class-weighted loss + backward + AdamW); *_iou_loss adds the "
+                "per-image outcome IoU loss (training/losses.py) as training does by default; "
                 "configurations interleaved in rotating blocks; shared, noisy machine",
     }, command="python bench/train_step.py " + " ".join(sys.argv[1:]))
 
