@@ -12,8 +12,8 @@ class-weighted loss + backward + AdamW) and the weight-average update. The netwo
 configurations (fp32 / bf16 autocast, each contiguous / channels-last, with cross-entropy
 alone; and the training default, bf16 + channels-last with the per-image outcome IoU loss of
 training/losses.py added) run interleaved in rotating blocks so load changes on the shared
-machine hit them alike. Batches come from the
-default run's working-size cache when it exists, else synthetic depth.
+machine hit them alike. Batches come from the default run's working-size cache when it
+exists, else synthetic depth.
 
 Writes the ``training`` section of bench/results.json.
 """
@@ -81,13 +81,13 @@ def main() -> None:
     n = len(arrays["depth"])
     weights = class_weights(arrays["labels"], cfg.class_weight_power)
     nets = {}
-    for dtype, channels_last, _ in CONFIGS:
+    for dtype, channels_last, iou_loss in CONFIGS:
         net = build_model(cfg.model_args)
         if channels_last:
             net = net.to(memory_format=torch.channels_last)
         optim = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-        nets[dtype, channels_last, _] = (net.train(), optim,
-                                         WeightAverage(net, cfg.ema_decay))
+        nets[dtype, channels_last, iou_loss] = (net.train(), optim,
+                                                WeightAverage(net, cfg.ema_decay))
     timings = {c: {"data": [], "network_input": [], "step": [], "average": [], "total": []}
                for c in CONFIGS}
     gen = torch.Generator().manual_seed(0)

@@ -284,7 +284,7 @@ class TrainConfig:
     # Weight of the per-image outcome IoU (Lovász-softmax) loss added to cross-entropy
     # (losses.py); 0 = cross-entropy alone. 0.5 (stop 13): fewer split objects; image
     # all-correct 0.982 -> 0.986 (validation), 0.980 -> 0.982 (seed-1), 0.980 -> 0.987 on the
-    # first 1,000 training images, for ~7 % more time per step.
+    # first 1,000 training images, for ~6 % more time per step (bench/train_step.py).
     lovasz_weight: float = 0.5
     device: str = "auto"                  # cpu | cuda | auto
     # auto: fp16 on CUDA, bf16 on a CPU with native bf16 (AVX512-BF16/AMX), else fp32
