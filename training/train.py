@@ -400,14 +400,14 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         checkpoint.save(last_path, average.module, **common, optimizer_state=training_state,
                         extra=extra)
         save_json(out / "history.json", history)
-        plot_curves(out / "training_curves.png", history)
+        plot_curves(out / "training_curves.png", history, cfg.lovasz_weight)
         if (time.perf_counter() - started) / 60 > cfg.max_minutes and epoch + 1 < cfg.epochs:
             print(f"stopping: the {cfg.max_minutes} min budget is spent; best kept")
             break
     return best_path
 
 
-def plot_curves(path: Path, history: list[dict]) -> None:
+def plot_curves(path: Path, history: list[dict], lovasz_weight: float = 0.0) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -417,7 +417,8 @@ def plot_curves(path: Path, history: list[dict]) -> None:
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8), dpi=100)
     a.plot(epochs, [h["train_loss"] for h in history], "o-")
     a.set_xlabel("epoch")
-    a.set_ylabel("train loss (weighted CE)")
+    a.set_ylabel("train loss (weighted CE"
+                 + (f" + {lovasz_weight:g} x outcome IoU loss)" if lovasz_weight else ")"))
     a.set_yscale("log")
     b.plot(epochs, [h["image_all_correct"] for h in history], "o-", label="image all-correct")
     b.plot(epochs, [h["pixel_miou"] for h in history], "s-", label="pixel mIoU")
