@@ -418,7 +418,7 @@ def plot_curves(path: Path, history: list[dict], lovasz_weight: float = 0.0) -> 
     a.plot(epochs, [h["train_loss"] for h in history], "o-")
     a.set_xlabel("epoch")
     a.set_ylabel("train loss (weighted CE"
-                 + (f" + {lovasz_weight:g} x outcome IoU loss)" if lovasz_weight else ")"))
+                 + (f" + {lovasz_weight:g} x IoU)" if lovasz_weight else ")"))
     a.set_yscale("log")
     b.plot(epochs, [h["image_all_correct"] for h in history], "o-", label="image all-correct")
     b.plot(epochs, [h["pixel_miou"] for h in history], "s-", label="pixel mIoU")
