@@ -192,7 +192,8 @@ def optimise_step(model, optim, x: torch.Tensor, labels: torch.Tensor,
     optimiser step (through the grad scaler when there is one). Returns the loss."""
     with autocast():
         logits = model(x)
-    loss = F.cross_entropy(logits.float(), labels, weight=weights, ignore_index=IGNORE)
+    logits = logits.float()          # both losses in fp32; one cast, not one per loss
+    loss = F.cross_entropy(logits, labels, weight=weights, ignore_index=IGNORE)
     if lovasz_weight > 0:
         loss = loss + lovasz_weight * outcome_lovasz_loss(logits, labels)
     optim.zero_grad(set_to_none=True)
