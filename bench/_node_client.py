@@ -57,15 +57,19 @@ def main() -> None:
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import Image
+    from sensor_msgs.msg import CameraInfo, Image
 
-    frames, _, frames_desc = load_frames(args.images)
-    msgs = []
-    for depth in frames:
+    frames, _, cameras, frames_desc = load_frames(args.images)
+    msgs, infos = [], []
+    for depth, camera in zip(frames, cameras, strict=True):
         h, w = depth.shape
         msgs.append(Image(height=h, width=w, encoding="32FC1", is_bigendian=0, step=w * 4,
                           data=array.array("B", np.ascontiguousarray(depth, "<f4").tobytes())))
         msgs[-1].header.frame_id = "depth_optical"
+        # Each frame's camera_info goes out just before it, as a camera driver sends them.
+        infos.append(None if camera is None else CameraInfo(
+            width=w, height=h, k=[camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy,
+                                  0.0, 0.0, 1.0]))
 
     rclpy.init()
     node = rclpy.create_node("outcome_bench_client")
@@ -77,6 +81,7 @@ def main() -> None:
     sub_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
                          reliability=ReliabilityPolicy.RELIABLE)
     pub = node.create_publisher(Image, "depth/image_raw", pub_qos)
+    info_pub = node.create_publisher(CameraInfo, "depth/camera_info", pub_qos)
     labels_at: dict[tuple[int, int], float] = {}
     status_of: dict[tuple[int, int], dict[str, str]] = {}
     last_status: dict[str, str] = {}
@@ -103,8 +108,11 @@ def main() -> None:
         return True
 
     def publish(sec: int, index: int) -> float:
-        msg = msgs[index % len(msgs)]
+        msg, info = msgs[index % len(msgs)], infos[index % len(msgs)]
         msg.header.stamp.sec, msg.header.stamp.nanosec = sec, index
+        if info is not None:
+            info.header = msg.header
+            info_pub.publish(info)
         t = time.monotonic()
         pub.publish(msg)
         return t

@@ -97,27 +97,33 @@ def synth_frame(rng: np.random.Generator) -> np.ndarray:
     return depth.astype(np.float32)
 
 
-def load_frames(n: int) -> tuple[list[np.ndarray], list[np.ndarray | None], str]:
-    """``n`` 640 x 480 float32 depth frames (+ true labels when from the dataset run)."""
+def load_frames(n: int) -> tuple[list[np.ndarray], list[np.ndarray | None], list, str]:
+    """``n`` 640 x 480 float32 depth frames, their true labels and cameras (``Intrinsics``, what
+    camera_info carries) when they come from the dataset run, else None each, and what they
+    are."""
     if (RUN_DIR / "manifest.json").is_file():
         import json
 
+        from task_outcome_ros.camera import Intrinsics
         from training.render import read_pair
 
-        total = int(json.loads((RUN_DIR / "manifest.json").read_text())["n_images"])
-        depths, labels = [], []
-        for index in np.linspace(0, total - 1, n).astype(int):
+        images = json.loads((RUN_DIR / "manifest.json").read_text())["images"]
+        depths, labels, cameras = [], [], []
+        for index in np.linspace(0, len(images) - 1, n).astype(int):
             try:
-                d, lab = read_pair(RUN_DIR, int(index))
+                d, lab = read_pair(RUN_DIR, int(images[index]["episode"]))
             except (ValueError, OSError):
                 continue
             if d.shape == (SIZE[1], SIZE[0]):
                 depths.append(d.astype(np.float32))
                 labels.append(lab)
+                cameras.append(Intrinsics.from_record(images[index]["camera"]))
         if len(depths) >= max(1, n // 2):
-            return depths, labels, f"{len(depths)} images of {RUN_DIR} (training.render.read_pair)"
+            return (depths, labels, cameras,
+                    f"{len(depths)} images of {RUN_DIR} (training.render.read_pair), with "
+                    "their camera_info")
     rng = np.random.default_rng(0)
-    return ([synth_frame(rng) for _ in range(n)], [None] * n,
+    return ([synth_frame(rng) for _ in range(n)], [None] * n, [None] * n,
             f"{n} synthetic frames (plane + boxes + 2 % NaN)")
 
 
@@ -127,7 +133,7 @@ def load_average() -> list[float]:
 
 # ---- the benchmark ---------------------------------------------------------------------------
 
-def staged(seg, frame: np.ndarray) -> tuple[float, float, float]:
+def staged(seg, frame: np.ndarray, camera=None) -> tuple[float, float, float]:
     """segment() split in three timed stages (ms): preprocess, network (+argmax), post.
 
     The stages are the segmenter's own methods; only the split into timers is added here."""
@@ -136,7 +142,8 @@ def staged(seg, frame: np.ndarray) -> tuple[float, float, float]:
 
     t0 = time.perf_counter()
     depth = sanitize_depth(frame)
-    x = preprocess_sanitized(depth, seg.input_size, seg.normalisation)
+    k = camera.normalised() if camera is not None and seg.uses_intrinsics else None
+    x = preprocess_sanitized(depth, seg.input_size, seg.normalisation, k)
     t1 = time.perf_counter()
     small = seg._predict_small(x)
     t2 = time.perf_counter()
@@ -168,7 +175,7 @@ def main() -> None:
 
     threads = [int(t) for t in args.threads.split(",")]
     load_start = load_average()
-    frames, true_labels, frames_desc = load_frames(args.images)
+    frames, true_labels, cameras, frames_desc = load_frames(args.images)
     with tempfile.TemporaryDirectory(prefix="bench_inference_") as tmp:
         model_path, model_desc = prepare_model(Path(tmp))
         configs = [(b, t) for t in threads for b in ("torch", "onnx")]
@@ -185,8 +192,8 @@ def main() -> None:
         for backend, n in configs:
             seg = use(backend, n)
             for i in range(args.warmup):
-                seg.segment(frames[i % len(frames)])
-                staged(seg, frames[i % len(frames)])
+                seg.segment(frames[i % len(frames)], cameras[i % len(frames)])
+                staged(seg, frames[i % len(frames)], cameras[i % len(frames)])
 
         total = {c: [] for c in configs}
         stages = {c: ([], [], []) for c in configs}
@@ -201,13 +208,13 @@ def main() -> None:
                 seg = use(*cfg)
                 block = []
                 for _ in range(args.block):
-                    frame = frames[k % len(frames)]
+                    frame, camera = frames[k % len(frames)], cameras[k % len(frames)]
                     k += 1
                     c0, t0 = time.process_time(), time.perf_counter()
-                    seg.segment(frame)
+                    seg.segment(frame, camera)
                     block.append((time.perf_counter() - t0) * 1e3)
                     cpu[cfg].append((time.process_time() - c0) * 1e3)
-                    for dst, v in zip(stages[cfg], staged(seg, frame), strict=True):
+                    for dst, v in zip(stages[cfg], staged(seg, frame, camera), strict=True):
                         dst.append(v)
                 total[cfg] += block
                 block_means[cfg].append(float(np.mean(block)))

@@ -261,20 +261,20 @@ def process_frame(segmenter: Any, msg: Any, camera_info: Any | None,
     except DepthDecodeError as exc:
         return FrameOutputs(header, R.error_fields(f"bad depth image: {exc}",
                                                    latency_ms=latency()))
-    try:
-        res = segmenter.segment(depth)
-    except Exception as exc:  # like the node: one bad frame never stops the run
-        return FrameOutputs(header, R.error_fields(f"inference failed: {exc}",
-                                                   latency_ms=latency()))
     height, width = depth.shape
-    labels = np.ascontiguousarray(res.labels, dtype=np.uint8)
     intrinsics, note = None, None
     if camera_info is not None:
         try:
             intrinsics = R.intrinsics_for_image(camera_info.width, camera_info.height,
                                                 camera_info.k, width, height)
         except ValueError as exc:
-            note = f"ignored for 3-D positions: {exc}"
+            note = f"ignored: {exc}"
+    try:
+        res = segmenter.segment(depth, intrinsics)  # as the node: heights use camera_info
+    except Exception as exc:  # like the node: one bad frame never stops the run
+        return FrameOutputs(header, R.error_fields(f"inference failed: {exc}",
+                                                   latency_ms=latency()))
+    labels = np.ascontiguousarray(res.labels, dtype=np.uint8)
     overlay = None if overlay_alpha is None else R.overlay_rgb(depth, labels, overlay_alpha)
     fields = R.status_fields(res, intrinsics, camera_note=note, latency_ms=latency())
     return FrameOutputs(header, fields, labels, overlay, dict(res.present), res.inference_ms)

@@ -7,9 +7,12 @@ easily recover from raw depth when the camera pose changes from image to image (
 depth runs in a different ramp in every view). Depth CNNs commonly get it handed in instead
 (Gupta et al. 2014, "HHA" encoding); so do we.
 
-How: back-project the working-size depth with the envelope's nominal pinhole camera (fx = fy
-is unknown within [525, 590] px at 640 px width, so the centre of that range is used: a 6 %
-focal error bends heights by at most ~6 %, about 1.5 cm at the rim), find the dominant plane
+How: back-project the working-size depth with the image's own intrinsics when they are known
+(``camera.Intrinsics.normalised``: from camera_info on the robot, from the dataset's camera
+records in training), else with the envelope's nominal pinhole camera (fx = fy somewhere in
+[525, 590] px at 640 px width, so the centre of that range: a 6 % focal error scales heights
+by up to ~6 %, about 1.5 cm at the rim, as much as a near-rim box's whole margin), find the
+dominant plane
 (the floor fills most of every view in the envelope) by RANSAC over a fixed set of pixel
 triples, refine it by least squares on its inliers, and measure every point's signed distance
 to it, positive towards the camera.
@@ -31,14 +34,25 @@ SCORE_STRIDE = 3              # score hypotheses on every 3rd pixel per axis (sp
 _SEED = 20141
 
 
-def backproject(depth: torch.Tensor, focal_over_width: float = FOCAL_OVER_WIDTH
-                ) -> torch.Tensor:
-    """(N, h, w) depth in metres -> (N, h, w, 3) camera-frame points (x right, y down)."""
+def backproject(depth: torch.Tensor, focal_over_width: float = FOCAL_OVER_WIDTH,
+                intrinsics: torch.Tensor | None = None) -> torch.Tensor:
+    """(N, h, w) depth in metres -> (N, h, w, 3) camera-frame points (x right, y down).
+
+    ``intrinsics``: (N, 4) per image, as ``camera.Intrinsics.normalised`` gives them (fx / W,
+    fy / H, principal-point offsets from the centre in widths and heights); None: the nominal
+    camera, fx = fy = ``focal_over_width`` x w, principal point at the centre."""
     n, h, w = depth.shape
-    f = focal_over_width * w
-    u = (torch.arange(w, dtype=depth.dtype, device=depth.device) - (w - 1) / 2) / f
-    v = (torch.arange(h, dtype=depth.dtype, device=depth.device) - (h - 1) / 2) / f
-    return torch.stack([depth * u[None, None, :], depth * v[None, :, None], depth], dim=-1)
+    u = torch.arange(w, dtype=depth.dtype, device=depth.device) - (w - 1) / 2
+    v = torch.arange(h, dtype=depth.dtype, device=depth.device) - (h - 1) / 2
+    if intrinsics is None:
+        f = focal_over_width * w
+        x, y = u[None, None, :] / f, v[None, :, None] / f
+    else:
+        k = intrinsics.to(device=depth.device, dtype=depth.dtype)
+        fx, fy = (k[:, 0] * w)[:, None, None], (k[:, 1] * h)[:, None, None]
+        cx, cy = (k[:, 2] * w)[:, None, None], (k[:, 3] * h)[:, None, None]
+        x, y = (u[None, None, :] - cx) / fx, (v[None, :, None] - cy) / fy
+    return torch.stack([depth * x, depth * y, depth.expand(n, h, w)], dim=-1)
 
 
 def _plane_through(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -85,10 +99,12 @@ def fit_floor(points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, 
 
 
 def height_above_floor(depth: torch.Tensor, valid: torch.Tensor,
-                       focal_over_width: float = FOCAL_OVER_WIDTH) -> torch.Tensor:
+                       focal_over_width: float = FOCAL_OVER_WIDTH,
+                       intrinsics: torch.Tensor | None = None) -> torch.Tensor:
     """(N, h, w) depth (metres) and validity (bool) -> (N, h, w) height in metres; 0 where
-    invalid, and everywhere in an image with fewer than three valid pixels."""
-    points = backproject(depth.float(), focal_over_width)
+    invalid, and everywhere in an image with fewer than three valid pixels. ``intrinsics``:
+    see ``backproject``."""
+    points = backproject(depth.float(), focal_over_width, intrinsics)
     normal, offset = fit_floor(points, valid)
     height = (points * normal[:, None, None]).sum(-1) - offset[:, None, None]
     return torch.where(valid, height, torch.zeros_like(height))

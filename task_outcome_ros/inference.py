@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.checkpoint import CheckpointError, LoadedCheckpoint, load, resolve_device
 from task_outcome_ros.depth import sanitize_depth
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS, absorb_fragments, fragment_threshold
@@ -33,7 +34,12 @@ from task_outcome_ros.labels import (
     presence_from_counts,
     presence_threshold,
 )
-from task_outcome_ros.model import preprocess, preprocess_batch, preprocess_sanitized
+from task_outcome_ros.model import (
+    INTRINSICS_FROM_CAMERA_INFO,
+    preprocess,
+    preprocess_batch,
+    preprocess_sanitized,
+)
 
 __all__ = ["DetectedObject", "OutcomeResult", "OutcomeSegmenter", "count_objects",
            "default_model_path", "predict_labels", "preprocess", "preprocess_batch"]
@@ -226,14 +232,32 @@ class OutcomeSegmenter:
         batch = torch.from_numpy(x[None]).to(self.device)
         return predict_labels(self.model, batch)[0].cpu().numpy()
 
-    def segment(self, depth_m: np.ndarray) -> OutcomeResult:
-        """Label one depth image (H x W metres, NaN/0/inf invalid) of any size."""
+    @property
+    def uses_intrinsics(self) -> bool:
+        """Whether the network was trained on heights from each image's own intrinsics, so
+        that passing them to ``segment`` (camera_info on the robot) matters."""
+        return self.normalisation.get("intrinsics") == INTRINSICS_FROM_CAMERA_INFO
+
+    def segment(self, depth_m: np.ndarray, intrinsics: Intrinsics | None = None
+                ) -> OutcomeResult:
+        """Label one depth image (H x W metres, NaN/0/inf invalid) of any size.
+
+        ``intrinsics``: the image's camera (camera_info), for a network trained with them
+        (``uses_intrinsics``); None falls back to the envelope's nominal camera. They must be
+        for this image's size."""
         t0 = time.perf_counter()
         depth = sanitize_depth(_validate_depth(depth_m))
+        k = None
+        if intrinsics is not None:
+            if (intrinsics.height, intrinsics.width) != depth.shape:
+                raise ValueError(f"intrinsics are for a {intrinsics.width} x "
+                                 f"{intrinsics.height} image, the depth image is "
+                                 f"{depth.shape[1]} x {depth.shape[0]}")
+            k = intrinsics.normalised() if self.uses_intrinsics else None
         small = None  # an all-invalid frame: nothing seen, nothing present (a defined answer)
         if np.isfinite(depth).any():
             small = self._predict_small(
-                preprocess_sanitized(depth, self.input_size, self.normalisation))
+                preprocess_sanitized(depth, self.input_size, self.normalisation, k))
         result = self.postprocess(small, depth)
         result.inference_ms = (time.perf_counter() - t0) * 1e3
         return result

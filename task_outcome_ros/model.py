@@ -10,7 +10,10 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
 1. validity: fraction of valid input pixels under each working-size pixel, in [0, 1].
 2. height above the floor (``floor.height_above_floor``) / ``height_scale_m``, clipped like
    depth; invalid pixels are 0. Present when the dict has ``height_scale_m`` (checkpoints
-   from before it have two channels and keep working).
+   from before it have two channels and keep working). With ``"intrinsics": "camera_info"``
+   in the dict the network was trained on heights from each image's own intrinsics, and the
+   callers pass them when they know them (camera_info on the robot); without the key, or
+   without intrinsics, heights come from the envelope's nominal camera.
 
 The channels are computed in one place, ``network_input`` (torch), after the one resize,
 ``resize_depth`` (numpy, NaN-aware area average). ``preprocess`` (one numpy image) and
@@ -39,6 +42,8 @@ DEFAULT_NORMALISATION: dict[str, Any] = {
     "mode": "fixed", "offset_m": 2.0, "scale_m": 1.0, "clip": 4.0, "invalid_value": 0.0,
     "height_scale_m": 0.25, "focal_over_width": FOCAL_OVER_WIDTH}
 _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
+# normalisation["intrinsics"]: where the height channel's camera comes from in training.
+INTRINSICS_FROM_CAMERA_INFO = "camera_info"
 DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution
 DEFAULT_MODEL_ARGS: dict[str, Any] = {
     "in_channels": IN_CHANNELS, "num_classes": NUM_CLASSES, "base_width": 8, "levels": 5,
@@ -56,6 +61,12 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
             out.update({k: float(norm[k]) for k in _HEIGHT_FIELDS})
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"normalisation {norm!r} lacks a numeric field: {exc}") from None
+    if "intrinsics" in norm:
+        if norm["intrinsics"] != INTRINSICS_FROM_CAMERA_INFO or "height_scale_m" not in out:
+            raise ValueError(f"normalisation 'intrinsics' must be "
+                             f"{INTRINSICS_FROM_CAMERA_INFO!r} with a height channel, got "
+                             f"{norm!r}")
+        out["intrinsics"] = INTRINSICS_FROM_CAMERA_INFO
     if not all(out.get(k, 1.0) > 0 for k in ("scale_m", "clip", *_HEIGHT_FIELDS)):
         raise ValueError(f"normalisation needs positive scales and clip, got {norm!r}")
     return out
@@ -101,22 +112,27 @@ def resize_depth(depth_m: np.ndarray, input_size: tuple[int, int],
 
 
 def preprocess(depth_m: np.ndarray, input_size: tuple[int, int],
-               normalisation: dict[str, Any] | None = None) -> np.ndarray:
-    """Depth image (H x W metres, NaN/<=0/inf invalid) -> network input (C, h, w) float32."""
-    return preprocess_sanitized(sanitize_depth(depth_m), input_size, normalisation)
+               normalisation: dict[str, Any] | None = None,
+               intrinsics: np.ndarray | None = None) -> np.ndarray:
+    """Depth image (H x W metres, NaN/<=0/inf invalid) -> network input (C, h, w) float32.
+    ``intrinsics``: the image's ``camera.Intrinsics.normalised()`` (4,), or None."""
+    return preprocess_sanitized(sanitize_depth(depth_m), input_size, normalisation, intrinsics)
 
 
 def preprocess_sanitized(depth_m: np.ndarray, input_size: tuple[int, int],
-                         normalisation: dict[str, Any] | None = None) -> np.ndarray:
+                         normalisation: dict[str, Any] | None = None,
+                         intrinsics: np.ndarray | None = None) -> np.ndarray:
     """``preprocess`` for a depth image already through ``depth.sanitize_depth``."""
     depth, frac = resize_depth(depth_m, check_input_size(input_size))
+    k = None if intrinsics is None else torch.as_tensor(intrinsics, dtype=torch.float32)[None]
     x = network_input(torch.from_numpy(depth)[None], torch.from_numpy(frac)[None],
-                      normalisation or DEFAULT_NORMALISATION)
+                      normalisation or DEFAULT_NORMALISATION, k)
     return x[0].numpy()
 
 
 def preprocess_batch(depth_m: torch.Tensor, input_size: tuple[int, int],
-                     normalisation: dict[str, Any] | None = None) -> torch.Tensor:
+                     normalisation: dict[str, Any] | None = None,
+                     intrinsics: torch.Tensor | None = None) -> torch.Tensor:
     """Torch twin of ``preprocess`` for (N, H, W) or (H, W) metre tensors -> (N, C, h, w).
 
     Identical to ``preprocess`` when the size is unchanged or shrinks by an integer factor
@@ -139,14 +155,19 @@ def preprocess_batch(depth_m: torch.Tensor, input_size: tuple[int, int],
     frac = mask.clamp(0.0, 1.0)
     has = frac > 1e-6
     depth = torch.where(has, filled / frac.clamp_min(1e-6), torch.zeros_like(filled))
-    return network_input(depth[:, 0], frac[:, 0], norm)
+    return network_input(depth[:, 0], frac[:, 0], norm, intrinsics)
 
 
 def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
-                  normalisation: dict[str, Any] | None = None) -> torch.Tensor:
+                  normalisation: dict[str, Any] | None = None,
+                  intrinsics: torch.Tensor | None = None) -> torch.Tensor:
     """(N, h, w) working-size depth (metres, as ``resize_depth`` gives) and valid fraction ->
     (N, C, h, w) network input (C = 2, or 3 with heights). Training uses this on its cached
-    ``resize_depth`` output, after augmentation, so heights follow the augmented depth."""
+    ``resize_depth`` output, after augmentation, so heights follow the augmented depth.
+
+    ``intrinsics`` (N, 4), ``camera.Intrinsics.normalised`` per image, are used for the heights
+    only when the normalisation says the network was trained with them; else the nominal
+    camera is (a network trained on nominal heights must see nominal heights)."""
     norm = check_normalisation(normalisation or DEFAULT_NORMALISATION)
     depth, valid_fraction = depth.float(), valid_fraction.float()
     has = valid_fraction > 1e-6
@@ -154,7 +175,8 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
     z = torch.where(has, z, torch.full_like(z, norm["invalid_value"]))
     channels = [z, torch.where(has, valid_fraction, torch.zeros_like(z))]
     if "height_scale_m" in norm:
-        height = height_above_floor(depth, has, norm["focal_over_width"])
+        use = intrinsics if norm.get("intrinsics") == INTRINSICS_FROM_CAMERA_INFO else None
+        height = height_above_floor(depth, has, norm["focal_over_width"], use)
         channels.append((height / norm["height_scale_m"]).clamp(-norm["clip"], norm["clip"]))
     return torch.stack(channels, dim=1)
 

@@ -149,10 +149,13 @@ class OutcomeNode(Node):
         self.create_subscription(CameraInfo, "depth/camera_info", self._on_camera_info, in_qos)
         self._worker = threading.Thread(target=self._work, name="outcome_worker", daemon=True)
         self._worker.start()
+        heights = (f"heights from {self.resolve_topic_name('depth/camera_info')} (the "
+                   "nominal camera until it arrives)" if self._segmenter.uses_intrinsics
+                   else "heights from the nominal camera")
         self.get_logger().info(
             f"ready: model {self._model_desc}, device {self._params['device']}, "
-            f"backend {self._params['backend']}, qos {self._params['qos']}; listening on "
-            f"{self.resolve_topic_name('depth/image_raw')}")
+            f"backend {self._params['backend']}, qos {self._params['qos']}, {heights}; "
+            f"listening on {self.resolve_topic_name('depth/image_raw')}")
 
     # parameters and model ------------------------------------------------------------------
     def _declare_and_validate(self) -> dict[str, Any]:
@@ -261,27 +264,33 @@ class OutcomeNode(Node):
                                       f"{exc}", throttle_duration_sec=WARN_THROTTLE_S)
             self._publish_error(header, f"bad depth image: {exc}", dropped, t_received)
             return
-        try:
-            res = self._segmenter.segment(depth)
-        except Exception as exc:
-            self.get_logger().error(f"inference failed on a {msg.width} x {msg.height} frame: "
-                                    f"{exc}", throttle_duration_sec=WARN_THROTTLE_S)
-            self._publish_error(header, f"inference failed: {exc}", dropped, t_received)
-            return
-
         height, width = depth.shape
-        labels = np.ascontiguousarray(res.labels, dtype=np.uint8)
-        self._pub_labels.publish(_image_msg(header, labels, "mono8"))
-
         intrinsics, camera_note = None, None
         if camera_info is not None:
             try:
                 intrinsics = R.intrinsics_for_image(camera_info.width, camera_info.height,
                                                     camera_info.k, width, height)
             except ValueError as exc:
-                camera_note = f"ignored for 3-D positions: {exc}"
+                camera_note = f"ignored: {exc}"
                 self.get_logger().warning(f"camera_info {camera_note}",
                                           throttle_duration_sec=WARN_THROTTLE_S)
+        if intrinsics is None and self._segmenter.uses_intrinsics:
+            self.get_logger().warning(
+                "no usable depth/camera_info: the network's height channel uses the nominal "
+                "camera, which is less accurate for boxes near the rim (README: accuracy "
+                "without camera_info)", once=True)
+        try:
+            # The intrinsics also sharpen the network's height channel when it was trained
+            # with them (OutcomeSegmenter.uses_intrinsics); without, the nominal camera.
+            res = self._segmenter.segment(depth, intrinsics)
+        except Exception as exc:
+            self.get_logger().error(f"inference failed on a {msg.width} x {msg.height} frame: "
+                                    f"{exc}", throttle_duration_sec=WARN_THROTTLE_S)
+            self._publish_error(header, f"inference failed: {exc}", dropped, t_received)
+            return
+
+        labels = np.ascontiguousarray(res.labels, dtype=np.uint8)
+        self._pub_labels.publish(_image_msg(header, labels, "mono8"))
 
         fields = R.status_fields(res, intrinsics, camera_note=camera_note, dropped=dropped,
                                  latency_ms=_latency_ms(t_received))

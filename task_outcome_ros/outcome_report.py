@@ -8,13 +8,13 @@ callers only wrap the results in their message types (rclpy or rosbags).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
 
 from task_outcome_ros import labels as L
+from task_outcome_ros.camera import Intrinsics, intrinsics_for_image  # noqa: F401 (re-export)
 
 STATUS_NAME = "task_outcome"
 # diagnostic_msgs/DiagnosticStatus levels (the byte constants, as ints).
@@ -53,46 +53,6 @@ def overlay_rgb(depth_m: np.ndarray, labels: np.ndarray,
         blend = cv2.addWeighted(L.colourise(labels), alpha, out, 1.0 - alpha, 0.0)
         np.copyto(out, blend, where=mask[..., None])
     return out
-
-
-# --- camera --------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics of the raw image (CameraInfo.K) for one image size."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    @classmethod
-    def from_k(cls, width: int, height: int, k: Any) -> Intrinsics:
-        """From CameraInfo's width, height and row-major 3 x 3 K; ValueError says what is off."""
-        k = [float(v) for v in k]
-        if len(k) != 9:
-            raise ValueError(f"camera_info K must have 9 values, got {len(k)}")
-        if not all(math.isfinite(v) for v in k) or k[0] <= 0 or k[4] <= 0:
-            raise ValueError(f"camera_info K has no valid focal length (fx={k[0]}, fy={k[4]})")
-        if width <= 0 or height <= 0:
-            raise ValueError(f"camera_info has size {width} x {height}")
-        return cls(int(width), int(height), k[0], k[4], k[2], k[5])
-
-    def back_project(self, u: float, v: float, z: float) -> tuple[float, float, float]:
-        """Pixel (u, v) at depth z (m, along the optical axis) -> optical-frame x, y, z."""
-        return (u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z
-
-
-def intrinsics_for_image(width: int, height: int, k: Any, image_width: int, image_height: int,
-                         ) -> Intrinsics:
-    """Intrinsics from camera_info fields, checked against the image they are used for."""
-    cand = Intrinsics.from_k(width, height, k)
-    if (cand.width, cand.height) != (image_width, image_height):
-        raise ValueError(f"camera_info size {cand.width} x {cand.height} does not match the "
-                         f"image {image_width} x {image_height}")
-    return cand
 
 
 # --- status ------------------------------------------------------------------------------------

@@ -7,20 +7,29 @@ import math
 import numpy as np
 import torch
 
+from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.floor import FOCAL_OVER_WIDTH, backproject, height_above_floor
-from task_outcome_ros.model import DEFAULT_NORMALISATION, input_channels, preprocess
+from task_outcome_ros.model import (
+    DEFAULT_NORMALISATION,
+    INTRINSICS_FROM_CAMERA_INFO,
+    input_channels,
+    preprocess,
+)
 
 
 def _tilted_scene(h: int = 120, w: int = 160, camera_height: float = 1.5,
-                  elevation_deg: float = 50.0, box_height: float = 0.3) -> np.ndarray:
+                  elevation_deg: float = 50.0, box_height: float = 0.3,
+                  camera: Intrinsics | None = None) -> np.ndarray:
     """Depth of a floor seen from ``camera_height`` m, pitched down ``elevation_deg``, with a
-    flat-topped box (top at ``box_height`` m) filling a patch in the middle of the image."""
+    flat-topped box (top at ``box_height`` m) filling a patch in the middle of the image.
+    ``camera``: the pinhole camera that sees it (None: the nominal one, centred)."""
     a = math.radians(elevation_deg)
     # Floor normal (towards the camera) in the optical frame (y down, z forward).
     normal = np.array([0.0, -math.cos(a), -math.sin(a)])
-    f = FOCAL_OVER_WIDTH * w
-    u = (np.arange(w) - (w - 1) / 2) / f
-    v = (np.arange(h) - (h - 1) / 2) / f
+    camera = camera or Intrinsics(w, h, FOCAL_OVER_WIDTH * w, FOCAL_OVER_WIDTH * w,
+                                  (w - 1) / 2, (h - 1) / 2)
+    u = (np.arange(w) - camera.cx) / camera.fx
+    v = (np.arange(h) - camera.cy) / camera.fy
     rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((h, w))), -1)
     along = rays @ normal                       # < 0: the ray goes down towards the floor
     plane_height = np.zeros((h, w))
@@ -71,3 +80,39 @@ def test_preprocess_third_channel_is_scaled_height() -> None:
               if k not in ("height_scale_m", "focal_over_width")}
     assert input_channels(legacy) == 2
     assert preprocess(_tilted_scene(), (16, 12), legacy).shape[0] == 2
+
+
+# A camera at the edge of the envelope (CONTRACTS §4): fx = fy = 590 px at 640 x 480 and the
+# principal point 8 px off the centre in both axes.
+EDGE_CAMERA = Intrinsics(640, 480, 590.0, 590.0, 319.5 + 8.0, 239.5 - 8.0)
+
+
+def _box_height(height: np.ndarray) -> float:
+    """Median height of the box patch of ``_tilted_scene`` (a margin inside its edges)."""
+    h, w = height.shape
+    return float(np.median(height[h // 3 + h // 40: h // 2 - h // 40,
+                                  w // 3 + w // 40: w // 2 - w // 40]))
+
+
+def test_own_intrinsics_recover_a_rim_height_the_nominal_camera_misses() -> None:
+    # The box top at the rim's 0.25 m: a few mm decide success or stuck_on_rim.
+    depth = torch.from_numpy(_tilted_scene(h=480, w=640, box_height=0.25, camera=EDGE_CAMERA))
+    valid = torch.ones_like(depth, dtype=torch.bool)[None]
+    own = height_above_floor(depth[None], valid,
+                             intrinsics=torch.from_numpy(EDGE_CAMERA.normalised())[None])
+    nominal = height_above_floor(depth[None], valid)
+    assert abs(_box_height(own[0].numpy()) - 0.25) < 0.001
+    assert abs(_box_height(nominal[0].numpy()) - 0.25) > 0.003
+
+
+def test_normalised_intrinsics_hold_at_the_working_size() -> None:
+    # The camera is given for the 640 x 480 image; the heights are computed at 160 x 120.
+    depth = _tilted_scene(h=480, w=640, box_height=0.25, camera=EDGE_CAMERA)
+    norm = dict(DEFAULT_NORMALISATION, intrinsics=INTRINSICS_FROM_CAMERA_INFO)
+    x = preprocess(depth, (160, 120), norm, EDGE_CAMERA.normalised())
+    assert abs(_box_height(x[2]) * norm["height_scale_m"] - 0.25) < 0.002
+    # A network trained on nominal heights gets nominal heights, intrinsics or not.
+    nominal = preprocess(depth, (160, 120))
+    np.testing.assert_array_equal(
+        preprocess(depth, (160, 120), DEFAULT_NORMALISATION, EDGE_CAMERA.normalised()), nominal)
+    assert abs(_box_height(nominal[2]) * norm["height_scale_m"] - 0.25) > 0.003

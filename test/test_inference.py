@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from task_outcome_ros import checkpoint, inference
+from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.checkpoint import CheckpointError
 from task_outcome_ros.inference import (
     OutcomeSegmenter,
@@ -25,14 +26,22 @@ from task_outcome_ros.labels import (
     SUCCESS,
     outcomes_present,
 )
-from task_outcome_ros.model import DEFAULT_NORMALISATION, IN_CHANNELS, OutcomeFCN, preprocess
+from task_outcome_ros.model import (
+    DEFAULT_NORMALISATION,
+    IN_CHANNELS,
+    INTRINSICS_FROM_CAMERA_INFO,
+    OutcomeFCN,
+    check_normalisation,
+    preprocess,
+)
 
 ARGS = {"in_channels": IN_CHANNELS, "num_classes": 5, "base_width": 4, "levels": 3,
         "decoder_convs": 1}
 INPUT_SIZE = (160, 120)
 
 
-def _make_checkpoint(path: Path, seed: int = 0) -> Path:
+def _make_checkpoint(path: Path, seed: int = 0,
+                     normalisation: dict = DEFAULT_NORMALISATION) -> Path:
     torch.manual_seed(seed)
     model = OutcomeFCN(**ARGS)
     # BN statistics from real inputs, so random-init labels vary over the image (a
@@ -45,7 +54,7 @@ def _make_checkpoint(path: Path, seed: int = 0) -> Path:
         for _ in range(20):
             model(batch)
     return checkpoint.save(path, model, model_args=ARGS, input_size=INPUT_SIZE,
-                           normalisation=DEFAULT_NORMALISATION, train_config={}, metrics={})
+                           normalisation=normalisation, train_config={}, metrics={})
 
 
 @pytest.fixture(scope="module")
@@ -236,3 +245,37 @@ def test_auto_backend_falls_back_when_onnx_is_stale(onnx_ckpt: Path, tmp_path: P
 def test_background_only_labels_are_not_present() -> None:
     labels = np.full((480, 640), BACKGROUND, np.uint8)
     assert not any(outcomes_present(labels).values())
+
+
+def test_intrinsics_reach_only_a_network_trained_with_them(ckpt: Path, tmp_path: Path,
+                                                            monkeypatch) -> None:
+    depth = _scene(480, 640)
+    camera = Intrinsics(640, 480, 590.0, 590.0, 327.5, 231.5)
+    nominal = OutcomeSegmenter(ckpt, backend="torch")
+    assert not nominal.uses_intrinsics
+    np.testing.assert_array_equal(nominal.segment(depth, camera).labels,
+                                  nominal.segment(depth).labels)
+
+    own_norm = dict(DEFAULT_NORMALISATION, intrinsics=INTRINSICS_FROM_CAMERA_INFO)
+    own = OutcomeSegmenter(_make_checkpoint(tmp_path / "own.pt", normalisation=own_norm),
+                           backend="torch")
+    assert own.uses_intrinsics and own.normalisation["intrinsics"] == INTRINSICS_FROM_CAMERA_INFO
+    inputs = []
+    predict = own._predict_small
+    monkeypatch.setattr(own, "_predict_small", lambda x: inputs.append(x) or predict(x))
+    own.segment(depth, camera)
+    own.segment(depth)
+    heights_own, heights_nominal = inputs[0][2], inputs[1][2]
+    np.testing.assert_array_equal(inputs[0][:2], inputs[1][:2])   # depth, validity: same
+    assert np.abs(heights_own - heights_nominal).max() > 1e-3     # heights: the camera's
+    with pytest.raises(ValueError, match="intrinsics are for a 320 x 240 image"):
+        own.segment(depth, Intrinsics(320, 240, 295.0, 295.0, 159.5, 119.5))
+
+
+def test_normalisation_intrinsics_field_is_checked() -> None:
+    with pytest.raises(ValueError, match="intrinsics"):
+        check_normalisation(dict(DEFAULT_NORMALISATION, intrinsics="tf"))
+    two_channels = {k: v for k, v in DEFAULT_NORMALISATION.items()
+                    if k not in ("height_scale_m", "focal_over_width")}
+    with pytest.raises(ValueError, match="height channel"):
+        check_normalisation(dict(two_channels, intrinsics=INTRINSICS_FROM_CAMERA_INFO))

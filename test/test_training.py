@@ -63,6 +63,8 @@ def test_train_config_validation_names_the_field():
         TrainConfig(device="tpu").validate()
     with pytest.raises(ConfigError, match="train.channels_last"):
         TrainConfig(channels_last=1).validate()
+    with pytest.raises(ConfigError, match="train.camera_intrinsics"):
+        TrainConfig(camera_intrinsics="yes").validate()
     with pytest.raises(ConfigError, match="train.max_width"):
         TrainConfig(max_width=4).validate()
     with pytest.raises(ConfigError, match="train.near_rim_weight"):
@@ -87,7 +89,7 @@ def test_augmentation_keeps_labels_and_redraws_noise_at_the_sensors_level():
     depth = torch.full((64, 120, 160), 2.0)
     labels = torch.zeros((64, 120, 160), dtype=torch.long)
     labels[:, 40:80, 60:100] = SUCCESS
-    out, valid, out_labels = augment(depth.clone(), torch.ones_like(depth), labels, gen)
+    out, valid, out_labels, _ = augment(depth.clone(), torch.ones_like(depth), labels, gen)
     # Labels only move with the image (mirror, shift): same object area, nothing relabelled.
     assert set(out_labels.unique().tolist()) <= {0, SUCCESS, 255}
     assert ((out_labels == SUCCESS).sum((1, 2)) == 40 * 40).all()
@@ -102,12 +104,45 @@ def test_augmentation_noise_level_zero_adds_no_noise():
     from training.train import augment
 
     depth = torch.full((8, 120, 160), 2.0)
-    out, _, _ = augment(depth.clone(), torch.ones_like(depth), torch.zeros_like(depth).long(),
-                        torch.Generator().manual_seed(0), noise_level=0.0)
+    out, _, _, _ = augment(depth.clone(), torch.ones_like(depth), torch.zeros_like(depth).long(),
+                           torch.Generator().manual_seed(0), noise_level=0.0)
     inner = out[:, 10:-10, 10:-10]
     # Only the whole-scene scale is left: every image flat, within +-4 % of 2 m.
     assert torch.allclose(inner, inner[:, :1, :1].expand_as(inner))
     assert ((inner - 2.0).abs() <= 0.08 + 1e-6).all()
+
+
+def test_augmentation_moves_the_intrinsics_with_the_image():
+    from test_floor import _tilted_scene
+
+    from task_outcome_ros.camera import Intrinsics
+    from task_outcome_ros.floor import height_above_floor
+    from training.train import augment
+
+    # An off-centre camera at the envelope's longest focal length, at the working size; the
+    # box top at the rim height. Mirrors and shifts must keep every height right.
+    camera = Intrinsics(160, 120, 590 / 4, 590 / 4, 79.5 + 2.0, 59.5 - 2.0)
+    one = _tilted_scene(box_height=0.25, camera=camera)
+    box = (np.abs(one - _tilted_scene(box_height=0.0, camera=camera)) > 1e-6).astype(np.int64)
+    n = 16
+    depth = torch.from_numpy(np.stack([one] * n))
+    k = torch.from_numpy(np.stack([camera.normalised()] * n))
+    out, valid, moved_box, k_out = augment(depth.clone(), torch.ones_like(depth),
+                                           torch.from_numpy(np.stack([box] * n)),
+                                           torch.Generator().manual_seed(3), noise_level=0.0,
+                                           intrinsics=k)
+    truth = torch.where(moved_box == 1, 0.25, 0.0)
+    seen = (valid > 0) & (moved_box != 255)
+
+    def worst_error(intrinsics):
+        heights = height_above_floor(out, valid > 0, intrinsics=intrinsics)
+        return (heights - truth).abs()[seen].max().item()
+
+    assert worst_error(k_out) < 2e-4
+    assert worst_error(k) > 1e-3                  # the intrinsics of the unmoved image
+    # No whole-scene distance change with intrinsics (it would move the rim off 0.25 m): the
+    # depths are the scene's own, only moved.
+    assert torch.isin(out[seen], depth[0]).all()
 
 
 def test_near_rim_sample_weights_follow_the_hard_case_tags(small_run, tmp_path):
@@ -232,6 +267,7 @@ def test_auto_precision_is_mixed_only_where_the_hardware_is_native(monkeypatch):
 def test_shipped_checkpoint_labels_a_fresh_scene_sensibly(tmp_path):
     """Proof of life, not a figure: a scene the model never saw (new seed), rendered with the
     geometric rule as truth, gets the container and the objects' outcomes right."""
+    from task_outcome_ros.camera import Intrinsics
     from task_outcome_ros.inference import OutcomeSegmenter, default_model_path
 
     if not default_model_path().exists():
@@ -250,7 +286,8 @@ def test_shipped_checkpoint_labels_a_fresh_scene_sensibly(tmp_path):
         outcomes = [geometric_outcome(object_measurements(o, episode, cfg.scene), cfg.scene)
                     for o in episode["objects"]]
         shot = render_episode(episode, outcomes, cfg, 987_654)
-        result = seg.segment(shot["depth"])
+        # With the camera the image was rendered with, as camera_info gives it to the node.
+        result = seg.segment(shot["depth"], Intrinsics.from_record(shot["record"]["camera"]))
         assert result.labels.shape == shot["labels"].shape
         agree += result.present == outcomes_present(shot["labels"])
         truth_c, pred_c = shot["labels"] == CONTAINER, result.labels == CONTAINER

@@ -129,6 +129,9 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lovasz-weight", type=float, default=None,
                    help="weight of the per-image outcome IoU (Lovász) loss added to "
                         "cross-entropy (default 0.5; 0 = off)")
+    p.add_argument("--camera-intrinsics", action=argparse.BooleanOptionalAction, default=None,
+                   help="height channel from each image's own intrinsics (camera_info on the "
+                        "robot) instead of the nominal camera's")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None)
     p.add_argument("--amp", choices=("auto", "bf16", "off"), default=None,
                    help="autocast: auto = fp16 on CUDA, bf16 on CPUs with native bf16, else "
@@ -148,7 +151,8 @@ def resolve_train_config(args: argparse.Namespace):
               "base_width": "base_width", "max_minutes": "max_minutes", "device": "device",
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
               "channels_last": "channels_last", "near_rim_weight": "near_rim_weight",
-              "aug_noise": "aug_noise", "lovasz_weight": "lovasz_weight"}
+              "aug_noise": "aug_noise", "lovasz_weight": "lovasz_weight",
+              "camera_intrinsics": "camera_intrinsics"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
     if args.input_size is not None:
         overrides["input_size"] = tuple(args.input_size)
@@ -188,8 +192,10 @@ def cmd_evaluate(args) -> None:
     out = args.eval_out or (Path(args.out) / ("eval" if data == Path(args.out)
                                               else f"eval_{Path(data).name}"))
     report = evaluate(model, data, args.split, out, backend=args.backend,
-                      fragment_max_pixels=args.fragment_max_pixels)
-    print(f"evaluate: {report['n_images']} images of {data} ({args.split}): image all-correct "
+                      fragment_max_pixels=args.fragment_max_pixels,
+                      camera_info=args.camera_info)
+    print(f"evaluate: {report['n_images']} images of {data} ({args.split}, heights from the "
+          f"{report['heights_from']}): image all-correct "
           f"{report['image_all_correct']:.4f}, pixel mIoU {report['pixel_miou']:.4f}, "
           f"presence recall {report['presence_recall']} -> {out}/eval.json")
     hard = report.get("hard_cases")
@@ -213,6 +219,10 @@ def add_eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fragment-max-pixels", type=non_negative_int, default=FRAGMENT_MAX_PIXELS,
                    help="absorb outcome fragments smaller than this (at 640 x 480) into the "
                         f"object they sit on; 0 = off (default {FRAGMENT_MAX_PIXELS})")
+    p.add_argument("--camera-info", action=argparse.BooleanOptionalAction, default=True,
+                   help="give the model each image's intrinsics, as the node has them from "
+                        "depth/camera_info (default); --no-camera-info measures a node "
+                        "without it")
     p.add_argument("--eval-out", type=Path, default=None, help="where eval.json goes")
 
 

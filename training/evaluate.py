@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from task_outcome_ros.inference import OutcomeSegmenter
 from task_outcome_ros.labels import (
@@ -77,8 +78,12 @@ def hard_case_report(rows: list[dict], cases: dict[int, HardCase] | None) -> dic
 def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
              backend: str = "auto", presence_min_pixels: int = PRESENCE_MIN_PIXELS,
              fragment_max_pixels: int = FRAGMENT_MAX_PIXELS,
-             limit: int | None = None, progress: bool = True) -> dict:
-    """Evaluate on ``split`` ('val', 'train' or 'all') of the dataset in ``data_dir``."""
+             limit: int | None = None, progress: bool = True, camera_info: bool = True) -> dict:
+    """Evaluate on ``split`` ('val', 'train' or 'all') of the dataset in ``data_dir``.
+
+    ``camera_info``: give ``segment`` each image's intrinsics, as the node has them when
+    depth/camera_info is published; False measures a node without camera_info (it matters
+    only for a network trained with them, ``OutcomeSegmenter.uses_intrinsics``)."""
     manifest = load_manifest(data_dir)
     images = [im for im in manifest["images"] if split == "all" or im["split"] == split]
     if limit:
@@ -91,7 +96,8 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
     truth_p, pred_p, rows, times = [], [], [], []
     for im in tqdm(images, desc=f"evaluate {split}", disable=not progress, unit="img"):
         depth, labels = read_pair(data_dir, im["episode"])
-        result = seg.segment(depth)
+        result = seg.segment(depth, Intrinsics.from_record(im["camera"]) if camera_info
+                             else None)
         times.append(result.inference_ms)
         t = outcomes_present(labels, presence_min_pixels)
         truth_p.append([t[n] for n in OUTCOME_NAMES])
@@ -114,6 +120,9 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         "presence_min_pixels": presence_min_pixels,
         "presence_threshold_pixels": presence_threshold(h, w, presence_min_pixels),
         "fragment_max_pixels": fragment_max_pixels,
+        "camera_info": camera_info,
+        "heights_from": ("camera_info" if camera_info and seg.uses_intrinsics
+                         else "nominal camera"),
         "image_size": [w, h],
         "inference_ms_p50": float(np.percentile(times, 50)),
         "confusion": conf.tolist(),
@@ -124,7 +133,7 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
     out_dir.mkdir(parents=True, exist_ok=True)
     save_json(out_dir / "eval.json", report)
     plot_confusion(out_dir / "confusion.png", conf)
-    plot_examples(out_dir / "eval_examples.png", data_dir, rows, seg)
+    plot_examples(out_dir / "eval_examples.png", data_dir, rows, seg, camera_info)
     if "hard_cases" in report:
         plot_rim_gap(out_dir / "rim_gap.png", report["hard_cases"]["by_rim_gap"],
                      report["image_all_correct"])
@@ -182,7 +191,7 @@ def plot_rim_gap(path: Path, by_gap: list[dict], overall: float) -> None:
 
 
 def plot_examples(path: Path, data_dir: Path, rows: list[dict], seg: OutcomeSegmenter,
-                  n: int = 6) -> None:
+                  camera_info: bool = True, n: int = 6) -> None:
     """depth | truth | prediction | disagreement for mistakes first, then correct images."""
     import matplotlib
 
@@ -193,11 +202,13 @@ def plot_examples(path: Path, data_dir: Path, rows: list[dict], seg: OutcomeSegm
     from training.preview import depth_to_grey
 
     chosen = ([r for r in rows if not r["correct"]] + [r for r in rows if r["correct"]])[:n]
+    cameras = {im["episode"]: im["camera"] for im in load_manifest(data_dir)["images"]}
     fig, axes = plt.subplots(len(chosen), 4, figsize=(13, 2.6 * len(chosen)), dpi=75,
                              squeeze=False)
     for row, r in zip(axes, chosen):
         depth, labels = read_pair(data_dir, r["episode"])
-        pred = seg.segment(depth).labels
+        pred = seg.segment(depth, Intrinsics.from_record(cameras[r["episode"]])
+                           if camera_info else None).labels
         wrong = (pred != labels) & (labels != IGNORE)
         names = lambda p: ", ".join(k for k, v in p.items() if v) or "nothing"  # noqa: E731
         row[0].imshow(depth_to_grey(depth), cmap="gray")

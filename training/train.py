@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from task_outcome_ros import checkpoint
+from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.checkpoint import resolve_device
 from task_outcome_ros.fragments import absorb_fragments, fragment_threshold
 from task_outcome_ros.labels import (
@@ -40,7 +41,12 @@ from task_outcome_ros.labels import (
     PRESENCE_MIN_PIXELS,
     REFERENCE_PIXELS,
 )
-from task_outcome_ros.model import DEFAULT_NORMALISATION, build_model, network_input
+from task_outcome_ros.model import (
+    DEFAULT_NORMALISATION,
+    INTRINSICS_FROM_CAMERA_INFO,
+    build_model,
+    network_input,
+)
 from training.config import TrainConfig, save_json, to_dict
 from training.dataset import load_cache, load_manifest
 from training.hard_cases import episode_hard_cases
@@ -65,17 +71,27 @@ def class_weights(labels: np.ndarray, power: float) -> torch.Tensor:
 
 
 def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
-            gen: torch.Generator, noise_level: float = 1.0
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            gen: torch.Generator, noise_level: float = 1.0,
+            intrinsics: torch.Tensor | None = None
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Batch augmentation that keeps labels honest. depth/valid float (N,h,w), labels long.
 
     ``noise_level`` (``TrainConfig.aug_noise``): each image gets re-drawn axial noise of
-    U(0, noise_level) times the sensor's own noise at this size; 0 turns it off."""
+    U(0, noise_level) times the sensor's own noise at this size; 0 turns it off.
+
+    ``intrinsics`` (N, 4, ``camera.Intrinsics.normalised``), when the heights are computed
+    from them, move with the image: a mirror mirrors the principal point, a shift shifts it.
+    The whole-scene distance change is then left out: it would scale every height (the rim
+    would no longer sit at the wall height), which is what exact intrinsics are there to
+    avoid. Returns (depth, valid, labels, intrinsics or None)."""
     n = depth.shape[0]
     flip = torch.rand(n, generator=gen) < 0.5           # a mirrored scene is a valid scene
     depth = torch.where(flip[:, None, None], depth.flip(-1), depth)
     valid = torch.where(flip[:, None, None], valid.flip(-1), valid)
     labels = torch.where(flip[:, None, None], labels.flip(-1), labels)
+    if intrinsics is not None:
+        intrinsics = intrinsics.clone()
+        intrinsics[:, 2] = torch.where(flip, -intrinsics[:, 2], intrinsics[:, 2])
     # Shift by a few pixels (camera aim jitter); uncovered border = no depth, ignored label.
     dy, dx = (int(v) for v in torch.randint(-6, 7, (2,), generator=gen))
     if dy or dx:
@@ -90,19 +106,24 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
                 t[:, :, :dx] = fill
             elif dx < 0:
                 t[:, :, dx:] = fill
+        if intrinsics is not None:  # content moved by (dx, dy) pixels: so did the centre
+            intrinsics[:, 2] += dx / depth.shape[2]
+            intrinsics[:, 3] += dy / depth.shape[1]
     # Whole-scene distance change (+-4 %) and re-drawn axial noise growing with z^2: up to
     # the sensor's own noise at this working size (0 to 1x per image by default), on top of
     # the noise already in the image. (Until stop 12 this was 0.003 z^2 per working pixel,
     # about 7x the real noise at 160 x 120, which buried the millimetres that tell stuck from
     # success.)
     scale = 1.0 + 0.08 * (torch.rand(n, 1, 1, generator=gen) - 0.5)
+    if intrinsics is not None:
+        scale = torch.ones_like(scale)  # drawn all the same: the random stream stays aligned
     per_pixel = SENSOR_NOISE_PER_Z2 * math.sqrt(depth.shape[1] * depth.shape[2] / REFERENCE_PIXELS)
     sigma = per_pixel * noise_level * torch.rand(n, 1, 1, generator=gen) * depth ** 2
     depth = depth * scale + torch.randn(depth.shape, generator=gen) * sigma
     # Extra dropout: 0-3 % of pixels lose their depth (labels kept: the net must infer them).
     drop = torch.rand(depth.shape, generator=gen) < 0.03 * torch.rand(n, 1, 1, generator=gen)
     valid = torch.where(drop, torch.zeros_like(valid), valid)
-    return depth, valid, labels
+    return depth, valid, labels, intrinsics
 
 
 def lr_at(step: int, total: int, base: float) -> float:
@@ -174,14 +195,19 @@ def autocast_factory(precision: str, device_type: str):
 
 def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
                  noise_level: float = 1.0):
-    """(depth, valid, labels) tensors of the cached images ``idx``, augmented unless ``gen`` is
-    None (the training loop's data step; bench/train_step.py times this very function)."""
+    """(depth, valid, labels, intrinsics) tensors of the cached images ``idx``, augmented
+    unless ``gen`` is None (the training loop's data step; bench/train_step.py times this very
+    function). intrinsics is None unless ``arrays`` holds them
+    (``TrainConfig.camera_intrinsics``)."""
     depth = torch.from_numpy(arrays["depth"][idx].astype(np.float32))
     valid = torch.from_numpy(arrays["valid"][idx].astype(np.float32))
     labels = torch.from_numpy(arrays["labels"][idx].astype(np.int64))
+    intrinsics = (torch.from_numpy(arrays["intrinsics"][idx]) if "intrinsics" in arrays
+                  else None)
     if gen is not None:
-        depth, valid, labels = augment(depth, valid, labels, gen, noise_level)
-    return depth, valid, labels
+        depth, valid, labels, intrinsics = augment(depth, valid, labels, gen, noise_level,
+                                                   intrinsics)
+    return depth, valid, labels, intrinsics
 
 
 def optimise_step(model, optim, x: torch.Tensor, labels: torch.Tensor,
@@ -224,9 +250,10 @@ def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch
     conf = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
     counts = np.zeros((n, NUM_CLASSES), np.int64)
     for s in range(0, n, batch_size):
-        depth = torch.from_numpy(arrays["depth"][s:s + batch_size].astype(np.float32))
-        valid = torch.from_numpy(arrays["valid"][s:s + batch_size].astype(np.float32))
-        pred = model(network_input(depth, valid, norm).to(device)).argmax(1).cpu().numpy()
+        depth, valid, _, intrinsics = gather_batch(arrays, np.arange(s, min(s + batch_size, n)),
+                                                   None)
+        pred = model(network_input(depth, valid, norm, intrinsics).to(device)
+                     ).argmax(1).cpu().numpy()
         # As inference does: fragments absorbed first, then no depth -> background.
         fragments = fragment_threshold(*pred.shape[1:])
         pred = np.stack([absorb_fragments(p.astype(np.uint8), fragments) for p in pred])
@@ -290,6 +317,14 @@ def resume_differences(saved: dict, cfg: TrainConfig, saved_precision: str | Non
     return differences
 
 
+def manifest_intrinsics(manifest: dict, indices: np.ndarray) -> np.ndarray:
+    """(N, 4) float32 ``camera.Intrinsics.normalised`` of the images ``indices``, from the
+    camera each was rendered with (what camera_info gives the node on the robot)."""
+    cameras = {im["episode"]: im["camera"] for im in manifest["images"]}
+    return np.stack([Intrinsics.from_record(cameras[int(i)]).normalised() for i in indices]
+                    ) if len(indices) else np.zeros((0, 4), np.float32)
+
+
 def _truth_present(manifest: dict, indices: np.ndarray) -> np.ndarray:
     by_index = {im["episode"]: im["present"] for im in manifest["images"]}
     return np.array([[by_index[int(i)][name] for name in OUTCOME_NAMES] for i in indices])
@@ -312,6 +347,10 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     manifest = load_manifest(run_dir)
     train_arrays = load_cache(run_dir, "train", cfg.input_size)
     val_arrays = load_cache(run_dir, "val", cfg.input_size)
+    if cfg.camera_intrinsics:
+        norm["intrinsics"] = INTRINSICS_FROM_CAMERA_INFO
+        for arrays in (train_arrays, val_arrays):
+            arrays["intrinsics"] = manifest_intrinsics(manifest, arrays["indices"])
     if len(train_arrays["indices"]) == 0:
         raise ValueError(f"{run_dir}: the train split is empty; generate more episodes")
     val_truth = _truth_present(manifest, val_arrays["indices"])
@@ -369,9 +408,10 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         t_epoch = time.perf_counter()
         for b in bar:
             idx = np.sort(order[b * cfg.batch_size:(b + 1) * cfg.batch_size])
-            depth, valid, labels = gather_batch(train_arrays, idx, gen if cfg.augment else None,
-                                                cfg.aug_noise)
-            x = network_input(depth, valid, norm).to(device, memory_format=memory_format)
+            depth, valid, labels, intrinsics = gather_batch(
+                train_arrays, idx, gen if cfg.augment else None, cfg.aug_noise)
+            x = network_input(depth, valid, norm, intrinsics).to(device,
+                                                                 memory_format=memory_format)
             labels = labels.to(device)
             for group in optim.param_groups:
                 group["lr"] = lr_at(epoch * steps_per_epoch + b, total_steps, cfg.lr)
