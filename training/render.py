@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.labels import (
     BACKGROUND,
     CONTAINER,
@@ -35,15 +36,10 @@ NEAR = 0.05  # m: hits closer than this to the camera are ignored
 
 
 @dataclass(frozen=True)
-class Camera:
-    """A pinhole camera: intrinsics and the pose of its optical frame (x right, y down, z fwd)."""
+class Camera(Intrinsics):
+    """A pinhole camera: the intrinsics camera_info would carry (``camera.Intrinsics``) and
+    the pose of its optical frame (x right, y down, z fwd)."""
 
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
     position: np.ndarray      # (3,) world
     rotation: np.ndarray      # (3, 3) columns = optical x, y, z axes in world
 
