@@ -67,9 +67,7 @@ def main() -> None:
                           data=array.array("B", np.ascontiguousarray(depth, "<f4").tobytes())))
         msgs[-1].header.frame_id = "depth_optical"
         # Each frame's camera_info goes out just before it, as a camera driver sends them.
-        infos.append(None if camera is None else CameraInfo(
-            width=w, height=h, k=[camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy,
-                                  0.0, 0.0, 1.0]))
+        infos.append(None if camera is None else CameraInfo(width=w, height=h, k=camera.k()))
 
     rclpy.init()
     node = rclpy.create_node("outcome_bench_client")

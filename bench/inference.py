@@ -138,12 +138,10 @@ def staged(seg, frame: np.ndarray, camera=None) -> tuple[float, float, float]:
 
     The stages are the segmenter's own methods; only the split into timers is added here."""
     from task_outcome_ros.depth import sanitize_depth
-    from task_outcome_ros.model import preprocess_sanitized
 
     t0 = time.perf_counter()
     depth = sanitize_depth(frame)
-    k = camera.normalised() if camera is not None and seg.uses_intrinsics else None
-    x = preprocess_sanitized(depth, seg.input_size, seg.normalisation, k)
+    x = seg.prepare(depth, camera)
     t1 = time.perf_counter()
     small = seg._predict_small(x)
     t2 = time.perf_counter()

@@ -45,6 +45,10 @@ class Intrinsics:
         return cls(int(camera["width"]), int(camera["height"]), float(camera["fx"]),
                    float(camera["fy"]), float(camera["cx"]), float(camera["cy"]))
 
+    def k(self) -> list[float]:
+        """Row-major 3 x 3 K, as CameraInfo carries it (``from_k`` reads it back)."""
+        return [self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0]
+
     def back_project(self, u: float, v: float, z: float) -> tuple[float, float, float]:
         """Pixel (u, v) at depth z (m, along the optical axis) -> optical-frame x, y, z."""
         return (u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z

@@ -247,20 +247,22 @@ class OutcomeSegmenter:
         for this image's size."""
         t0 = time.perf_counter()
         depth = sanitize_depth(_validate_depth(depth_m))
-        k = None
-        if intrinsics is not None:
-            if (intrinsics.height, intrinsics.width) != depth.shape:
-                raise ValueError(f"intrinsics are for a {intrinsics.width} x "
-                                 f"{intrinsics.height} image, the depth image is "
-                                 f"{depth.shape[1]} x {depth.shape[0]}")
-            k = intrinsics.normalised() if self.uses_intrinsics else None
+        if intrinsics is not None and (intrinsics.height, intrinsics.width) != depth.shape:
+            raise ValueError(f"intrinsics are for a {intrinsics.width} x {intrinsics.height} "
+                             f"image, the depth image is {depth.shape[1]} x {depth.shape[0]}")
         small = None  # an all-invalid frame: nothing seen, nothing present (a defined answer)
         if np.isfinite(depth).any():
-            small = self._predict_small(
-                preprocess_sanitized(depth, self.input_size, self.normalisation, k))
+            small = self._predict_small(self.prepare(depth, intrinsics))
         result = self.postprocess(small, depth)
         result.inference_ms = (time.perf_counter() - t0) * 1e3
         return result
+
+    def prepare(self, depth: np.ndarray, intrinsics: Intrinsics | None = None) -> np.ndarray:
+        """Sanitised depth (NaN invalid) -> the network's (C, h, w) input: everything
+        ``segment`` does before the network (also timed alone by the bench). The intrinsics
+        reach the height channel only for a network trained with them."""
+        k = intrinsics.normalised() if intrinsics is not None and self.uses_intrinsics else None
+        return preprocess_sanitized(depth, self.input_size, self.normalisation, k)
 
     def postprocess(self, small: np.ndarray | None, depth: np.ndarray) -> OutcomeResult:
         """Everything ``segment`` does after the network (also timed alone by the bench).

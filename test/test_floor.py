@@ -116,3 +116,7 @@ def test_normalised_intrinsics_hold_at_the_working_size() -> None:
     np.testing.assert_array_equal(
         preprocess(depth, (160, 120), DEFAULT_NORMALISATION, EDGE_CAMERA.normalised()), nominal)
     assert abs(_box_height(nominal[2]) * norm["height_scale_m"] - 0.25) > 0.003
+
+
+def test_intrinsics_k_round_trips_through_camera_info_fields() -> None:
+    assert Intrinsics.from_k(640, 480, EDGE_CAMERA.k()) == EDGE_CAMERA

@@ -94,10 +94,12 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
                            fragment_max_pixels=fragment_max_pixels)
     conf = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
     truth_p, pred_p, rows, times = [], [], [], []
+    # What camera_info would carry for each image (None: evaluated without it).
+    cameras = {im["episode"]: Intrinsics.from_record(im["camera"]) if camera_info else None
+               for im in images}
     for im in tqdm(images, desc=f"evaluate {split}", disable=not progress, unit="img"):
         depth, labels = read_pair(data_dir, im["episode"])
-        result = seg.segment(depth, Intrinsics.from_record(im["camera"]) if camera_info
-                             else None)
+        result = seg.segment(depth, cameras[im["episode"]])
         times.append(result.inference_ms)
         t = outcomes_present(labels, presence_min_pixels)
         truth_p.append([t[n] for n in OUTCOME_NAMES])
@@ -133,7 +135,7 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
     out_dir.mkdir(parents=True, exist_ok=True)
     save_json(out_dir / "eval.json", report)
     plot_confusion(out_dir / "confusion.png", conf)
-    plot_examples(out_dir / "eval_examples.png", data_dir, rows, seg, camera_info)
+    plot_examples(out_dir / "eval_examples.png", data_dir, rows, seg, cameras)
     if "hard_cases" in report:
         plot_rim_gap(out_dir / "rim_gap.png", report["hard_cases"]["by_rim_gap"],
                      report["image_all_correct"])
@@ -191,8 +193,9 @@ def plot_rim_gap(path: Path, by_gap: list[dict], overall: float) -> None:
 
 
 def plot_examples(path: Path, data_dir: Path, rows: list[dict], seg: OutcomeSegmenter,
-                  camera_info: bool = True, n: int = 6) -> None:
-    """depth | truth | prediction | disagreement for mistakes first, then correct images."""
+                  cameras: dict[int, Intrinsics | None], n: int = 6) -> None:
+    """depth | truth | prediction | disagreement for mistakes first, then correct images;
+    ``cameras``: each episode's intrinsics as ``evaluate`` gave them to ``segment``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -202,13 +205,11 @@ def plot_examples(path: Path, data_dir: Path, rows: list[dict], seg: OutcomeSegm
     from training.preview import depth_to_grey
 
     chosen = ([r for r in rows if not r["correct"]] + [r for r in rows if r["correct"]])[:n]
-    cameras = {im["episode"]: im["camera"] for im in load_manifest(data_dir)["images"]}
     fig, axes = plt.subplots(len(chosen), 4, figsize=(13, 2.6 * len(chosen)), dpi=75,
                              squeeze=False)
     for row, r in zip(axes, chosen):
         depth, labels = read_pair(data_dir, r["episode"])
-        pred = seg.segment(depth, Intrinsics.from_record(cameras[r["episode"]])
-                           if camera_info else None).labels
+        pred = seg.segment(depth, cameras[r["episode"]]).labels
         wrong = (pred != labels) & (labels != IGNORE)
         names = lambda p: ", ".join(k for k, v in p.items() if v) or "nothing"  # noqa: E731
         row[0].imshow(depth_to_grey(depth), cmap="gray")

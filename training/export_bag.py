@@ -19,6 +19,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from task_outcome_ros import bag_tools as B
+from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.cli_args import positive_float, positive_int
 from task_outcome_ros.labels import PRESENCE_MIN_PIXELS
 from training.dataset import load_manifest
@@ -34,11 +35,6 @@ GROUND_TRUTH_FORMAT = "task_outcome_ros ground truth 1"
 
 def frame_stamp_ns(index: int, rate_hz: float) -> int:
     return EPOCH_NS + int(round(index * 1e9 / rate_hz))
-
-
-def camera_k(camera: dict) -> list[float]:
-    """Row-major K of a manifest camera record."""
-    return [camera["fx"], 0.0, camera["cx"], 0.0, camera["fy"], camera["cy"], 0.0, 0.0, 1.0]
 
 
 def export_bag(run_dir: Path, bag: Path | None = None, *, split: str = "val",
@@ -86,7 +82,8 @@ def export_bag(run_dir: Path, bag: Path | None = None, *, split: str = "val",
                                  f"{height}")
             stamp = frame_stamp_ns(index, rate_hz)
             header = B.make_header(stamp, frame_id)
-            info = B.camera_info_message(header, width, height, camera_k(cam))
+            info = B.camera_info_message(header, width, height,
+                                         Intrinsics.from_record(cam).k())
             writer.write(info_conn, stamp, B.serialize(info, B.CAMERA_INFO))
             writer.write(image_conn, stamp,
                          B.serialize(B.depth_image_message(header, depth, encoding), B.IMAGE))
