@@ -1,13 +1,16 @@
-"""How right is the network's height channel? Nominal camera against each image's own camera.
+"""How right is the network's height channel? Floor fit versions 1 and 2, nominal camera and
+each image's own camera.
 
 Not a timing: the height above the floor (``floor.height_above_floor``, the network's third
-input) is computed at the working size from validation images of the default run twice, with
-the envelope's nominal camera and with the camera the image was rendered with (what
-camera_info gives the node). Both are compared with the true height of the same depth
-samples, obtained from the renderer's camera pose, on pixels more than 15 cm above the floor
-(box tops, walls, the rim: where success and stuck_on_rim differ by millimetres). The floor's
-own height is taken out as the median over background pixels, so only the camera model and
-the plane fit are measured, not the sensor noise both share.
+input) is computed at the working size from validation images of the default run four ways:
+with floor fit version 1 (checkpoints before stop 15) and version 2, each with the envelope's
+nominal camera and with the camera the image was rendered with (what camera_info gives the
+node). Each is compared with the true height of the same depth samples, obtained from the
+renderer's camera pose, above the episode's simulated floor level, on pixels more than 15 cm
+above the floor (box tops, walls, the rim: where success and stuck_on_rim differ by
+millimetres). Sensor noise is shared by both sides, so only the camera model and the plane fit
+are measured. (Until stop 15 both sides had their median over background pixels subtracted,
+which hid a fitted plane's offset.)
 
     python bench/heights.py [--images 200]
 
@@ -52,9 +55,11 @@ def main() -> None:
 
     from task_outcome_ros.camera import Intrinsics
     from task_outcome_ros.depth import sanitize_depth
-    from task_outcome_ros.floor import height_above_floor
+    from task_outcome_ros.floor import FLOOR_FIT, LEGACY_FLOOR_FIT, height_above_floor
     from task_outcome_ros.model import resize_depth
-    from training.dataset import downsample_labels, load_manifest
+    from training.chunks import load_chunks
+    from training.config import dataset_config_from_dict
+    from training.dataset import load_manifest
     from training.render import read_pair
 
     if not (RUN_DIR / "manifest.json").is_file():
@@ -62,33 +67,37 @@ def main() -> None:
                          "dataset`) makes it")
     images = [im for im in load_manifest(RUN_DIR)["images"] if im["split"] == "val"]
     images = images[:args.images]
-    errors: dict[str, list[float]] = {"nominal": [], "own": []}
+    cfg = dataset_config_from_dict(load_manifest(RUN_DIR)["config"])
+    floor_z = {int(e["episode"]): float(e["floor_z"]) for e in
+               load_chunks(RUN_DIR / "simulate", cfg.episodes, cfg.chunk_size)}
+    variants = {f"fit{fit}_{cam}": (fit, cam) for fit in (LEGACY_FLOOR_FIT, FLOOR_FIT)
+                for cam in ("nominal", "own")}
+    errors: dict[str, list[float]] = {name: [] for name in variants}
     for im in images:
-        depth, labels = read_pair(RUN_DIR, im["episode"])
+        depth, _ = read_pair(RUN_DIR, im["episode"])
         z, frac = resize_depth(sanitize_depth(depth), WORKING_SIZE)
-        small_labels = downsample_labels(labels, WORKING_SIZE)
         k = Intrinsics.from_record(im["camera"]).normalised()
         world_z = true_heights(z, im["camera"], k)
         full = frac > 0.99                           # whole working pixels only: no edges
-        floor = full & (small_labels == 0)
-        truth = world_z - np.median(world_z[floor])
+        truth = world_z - floor_z[im["episode"]]
         up = full & (truth > ABOVE_M)
-        if not up.any() or not floor.any():
+        if not up.any():
             continue
-        for name, intrinsics in (("nominal", None), ("own", torch.from_numpy(k)[None])):
+        for name, (fit, cam) in variants.items():
+            intrinsics = torch.from_numpy(k)[None] if cam == "own" else None
             est = height_above_floor(torch.from_numpy(z)[None], torch.from_numpy(full)[None],
-                                     intrinsics=intrinsics)[0].numpy()
-            est = est - np.median(est[floor])
+                                     intrinsics=intrinsics, version=fit)[0].numpy()
             errors[name].append(float(np.median(np.abs(est[up] - truth[up]))))
     summary = {name: {"images": len(e), "mean_mm": round(1e3 * float(np.mean(e)), 2),
                       "p95_mm": round(1e3 * float(np.percentile(e, 95)), 2),
-                      "max_mm": round(1e3 * float(np.max(e)), 2)}
+                      "max_mm": round(1e3 * float(np.max(e)), 2),
+                      "over_3mm": int(np.sum(np.array(e) > 0.003))}
                for name, e in errors.items()}
     record("heights", {
         "what": (f"per image, median |estimated - true height| over working-size pixels more "
                  f"than {ABOVE_M} m above the floor; then mean / p95 / max over images"),
         "data": f"validation images of {RUN_DIR}", "working_size": list(WORKING_SIZE),
-        "nominal_camera": summary["nominal"], "own_camera": summary["own"],
+        "floor_fit_now": FLOOR_FIT, **summary,
     }, command)
 
 

@@ -13,7 +13,9 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    from before it have two channels and keep working). With ``"intrinsics": "camera_info"``
    in the dict the network was trained on heights from each image's own intrinsics, and the
    callers pass them when they know them (camera_info on the robot); without the key, or
-   without intrinsics, heights come from the envelope's nominal camera.
+   without intrinsics, heights come from the envelope's nominal camera. ``floor_fit`` is the
+   version of ``floor.fit_floor`` the network was trained on; a checkpoint without it was
+   trained on version 1 (before stop 15) and keeps getting it.
 
 The channels are computed in one place, ``network_input`` (torch), after the one resize,
 ``resize_depth`` (numpy, NaN-aware area average). ``preprocess`` (one numpy image) and
@@ -31,7 +33,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from task_outcome_ros.depth import sanitize_depth
-from task_outcome_ros.floor import FOCAL_OVER_WIDTH, height_above_floor
+from task_outcome_ros.floor import (
+    FLOOR_FIT,
+    FOCAL_OVER_WIDTH,
+    LEGACY_FLOOR_FIT,
+    height_above_floor,
+)
 from task_outcome_ros.labels import NUM_CLASSES
 
 IN_CHANNELS = 3
@@ -40,8 +47,10 @@ IN_CHANNELS = 3
 # Heights are scaled by the wall height (0.25 m), so the rim sits at 1.
 DEFAULT_NORMALISATION: dict[str, Any] = {
     "mode": "fixed", "offset_m": 2.0, "scale_m": 1.0, "clip": 4.0, "invalid_value": 0.0,
-    "height_scale_m": 0.25, "focal_over_width": FOCAL_OVER_WIDTH}
+    "height_scale_m": 0.25, "focal_over_width": FOCAL_OVER_WIDTH,
+    "floor_fit": FLOOR_FIT}
 _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
+_FLOOR_FITS = (LEGACY_FLOOR_FIT, FLOOR_FIT)
 # normalisation["intrinsics"]: where the height channel's camera comes from in training.
 INTRINSICS_FROM_CAMERA_INFO = "camera_info"
 DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution
@@ -59,8 +68,13 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
                                    ("offset_m", "scale_m", "clip", "invalid_value")}}
         if any(k in norm for k in _HEIGHT_FIELDS):
             out.update({k: float(norm[k]) for k in _HEIGHT_FIELDS})
+            out["floor_fit"] = norm.get("floor_fit", LEGACY_FLOOR_FIT)
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"normalisation {norm!r} lacks a numeric field: {exc}") from None
+    fit = out.get("floor_fit")
+    if "floor_fit" in norm and (type(fit) is not int or fit not in _FLOOR_FITS):
+        raise ValueError(f"normalisation 'floor_fit' must be one of {_FLOOR_FITS} with a height "
+                         f"channel, got {norm!r}")
     if "intrinsics" in norm:
         if norm["intrinsics"] != INTRINSICS_FROM_CAMERA_INFO or "height_scale_m" not in out:
             raise ValueError(f"normalisation 'intrinsics' must be "
@@ -176,7 +190,8 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
     channels = [z, torch.where(has, valid_fraction, torch.zeros_like(z))]
     if "height_scale_m" in norm:
         use = intrinsics if norm.get("intrinsics") == INTRINSICS_FROM_CAMERA_INFO else None
-        height = height_above_floor(depth, has, norm["focal_over_width"], use)
+        height = height_above_floor(depth, has, norm["focal_over_width"], use,
+                                    norm["floor_fit"])
         channels.append((height / norm["height_scale_m"]).clamp(-norm["clip"], norm["clip"]))
     return torch.stack(channels, dim=1)
 

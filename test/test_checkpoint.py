@@ -165,7 +165,7 @@ def test_channel_count_must_match_the_normalisation(tmp_path: Path) -> None:
     path = tmp_path / "m.pt"
     _save(path)
     legacy = {k: v for k, v in DEFAULT_NORMALISATION.items()
-              if k not in ("height_scale_m", "focal_over_width")}
+              if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
     _rewrite(path, normalisation=legacy)  # 2-channel preprocessing for a 3-channel net
     with pytest.raises(CheckpointError, match="input channels"):
         checkpoint.load(path)
@@ -175,7 +175,7 @@ def test_two_channel_checkpoint_from_before_heights_still_segments(tmp_path: Pat
     from task_outcome_ros.inference import OutcomeSegmenter
 
     legacy = {k: v for k, v in DEFAULT_NORMALISATION.items()
-              if k not in ("height_scale_m", "focal_over_width")}
+              if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
     path = tmp_path / "legacy.pt"
     torch.manual_seed(0)
     model = OutcomeFCN(**{**ARGS, "in_channels": 2})
@@ -183,3 +183,27 @@ def test_two_channel_checkpoint_from_before_heights_still_segments(tmp_path: Pat
                     normalisation=legacy, train_config={}, metrics={})
     result = OutcomeSegmenter(path, backend="torch").segment(np.full((48, 64), 2.0, np.float32))
     assert result.labels.shape == (48, 64)
+
+
+def test_checkpoint_keeps_the_floor_fit_it_was_trained_on(tmp_path: Path) -> None:
+    from test_floor import _container_floor_scene
+
+    from task_outcome_ros.floor import FLOOR_FIT, LEGACY_FLOOR_FIT
+    from task_outcome_ros.inference import OutcomeSegmenter
+
+    new, old = tmp_path / "new.pt", tmp_path / "old.pt"
+    _save(new, input_size=(160, 120))
+    _save(old, input_size=(160, 120))
+    _rewrite(old, normalisation={k: v for k, v in DEFAULT_NORMALISATION.items()
+                                 if k != "floor_fit"})          # saved before stop 15
+    assert checkpoint.load(new).normalisation["floor_fit"] == FLOOR_FIT
+    assert checkpoint.load(old).normalisation["floor_fit"] == LEGACY_FLOOR_FIT
+    # The segmenter's height channel follows: on a scene whose inner floor misleads fit
+    # version 1, the old checkpoint sees the floor millimetres off, the new one does not.
+    depth, valid, outer = _container_floor_scene()
+    depth = np.where(valid[0].numpy(), depth[0].numpy(), np.nan).astype(np.float32)
+    scale = DEFAULT_NORMALISATION["height_scale_m"]
+    for path, off_m in ((new, False), (old, True)):
+        segmenter = OutcomeSegmenter(path, backend="torch")
+        floor_height = np.median(segmenter.prepare(depth)[2][outer]) * scale
+        assert (abs(floor_height) > 0.003) == off_m

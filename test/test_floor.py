@@ -5,13 +5,21 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from task_outcome_ros.camera import Intrinsics
-from task_outcome_ros.floor import FOCAL_OVER_WIDTH, backproject, height_above_floor
+from task_outcome_ros.floor import (
+    FLOOR_FIT,
+    FOCAL_OVER_WIDTH,
+    LEGACY_FLOOR_FIT,
+    backproject,
+    height_above_floor,
+)
 from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
     INTRINSICS_FROM_CAMERA_INFO,
+    check_normalisation,
     input_channels,
     preprocess,
 )
@@ -77,7 +85,7 @@ def test_preprocess_third_channel_is_scaled_height() -> None:
     box_height = np.median(x[2, 45:55, 60:75]) * DEFAULT_NORMALISATION["height_scale_m"]
     assert abs(box_height - 0.3) < 0.01
     legacy = {k: v for k, v in DEFAULT_NORMALISATION.items()
-              if k not in ("height_scale_m", "focal_over_width")}
+              if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
     assert input_channels(legacy) == 2
     assert preprocess(_tilted_scene(), (16, 12), legacy).shape[0] == 2
 
@@ -120,3 +128,42 @@ def test_normalised_intrinsics_hold_at_the_working_size() -> None:
 
 def test_intrinsics_k_round_trips_through_camera_info_fields() -> None:
     assert Intrinsics.from_k(640, 480, EDGE_CAMERA.k()) == EDGE_CAMERA
+
+
+def _container_floor_scene(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+    """A noisy floor seen at 42 deg from 1.8 m, half of it behind a raised inner floor 0.02 m
+    up (the container's, CONTRACTS §2) and its far rows out of range. Returns depth (1, h, w),
+    validity (1, h, w) and the true outer-floor mask."""
+    h, w = 120, 160
+    depth = _tilted_scene(h, w, camera_height=1.8, elevation_deg=42.0, box_height=0.0)
+    raised = np.zeros((h, w), bool)
+    raised[30:90, w // 6: 5 * w // 6] = True
+    depth = _tilted_scene(h, w, camera_height=1.8 - 0.02, elevation_deg=42.0,
+                          box_height=0.0) * raised + depth * ~raised
+    noise = np.random.default_rng(seed).normal(0.0, 0.002, depth.shape) * (depth / 2) ** 2
+    valid = np.ones((h, w), bool)
+    valid[:18] = False
+    outer = ~raised & valid
+    return (torch.from_numpy((depth + noise).astype(np.float32))[None],
+            torch.from_numpy(valid)[None], outer)
+
+
+def test_floor_fit_is_not_pulled_towards_the_container_inner_floor() -> None:
+    depth, valid, outer = _container_floor_scene()
+    fixed = height_above_floor(depth, valid)[0].numpy()
+    assert abs(np.median(fixed[outer])) < 0.0005
+    # Fit version 1 (checkpoints before stop 15) settles on a plane tilted through both floors.
+    legacy = height_above_floor(depth, valid, version=LEGACY_FLOOR_FIT)[0].numpy()
+    assert abs(np.median(legacy[outer])) > 0.003
+
+
+def test_floor_fit_version_is_recorded_and_validated() -> None:
+    assert check_normalisation(DEFAULT_NORMALISATION)["floor_fit"] == FLOOR_FIT
+    older = {k: v for k, v in DEFAULT_NORMALISATION.items() if k != "floor_fit"}
+    assert check_normalisation(older)["floor_fit"] == LEGACY_FLOOR_FIT
+    for bad in (0, 3, 2.0, True, "2"):
+        with pytest.raises(ValueError, match="floor_fit"):
+            check_normalisation(dict(DEFAULT_NORMALISATION, floor_fit=bad))
+    with pytest.raises(ValueError, match="floor fit version"):
+        height_above_floor(torch.ones(1, 4, 4), torch.ones(1, 4, 4, dtype=torch.bool),
+                           version=7)

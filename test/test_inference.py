@@ -281,6 +281,6 @@ def test_normalisation_intrinsics_field_is_checked() -> None:
     with pytest.raises(ValueError, match="intrinsics"):
         check_normalisation(dict(DEFAULT_NORMALISATION, intrinsics="tf"))
     two_channels = {k: v for k, v in DEFAULT_NORMALISATION.items()
-                    if k not in ("height_scale_m", "focal_over_width")}
+                    if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
     with pytest.raises(ValueError, match="height channel"):
         check_normalisation(dict(two_channels, intrinsics=INTRINSICS_FROM_CAMERA_INFO))
