@@ -41,7 +41,7 @@ import torch
 # Nominal focal length over image width: fx in [525, 590] px at 640 px (CONTRACTS §4).
 FOCAL_OVER_WIDTH = (525.0 + 590.0) / 2.0 / 640.0
 HYPOTHESES = 96               # triples; floor >= 44 % of valid pixels: P(no floor triple) < 3e-4
-SCORE_STRIDE = 3              # score hypotheses on every 3rd pixel per axis (speed)
+_SCORE_STRIDE = {1: 3, 2: 4}  # score hypotheses on every k-th pixel per axis (speed)
 _SEED = 20141
 FLOOR_FIT = 2                 # the fit new checkpoints are trained on (see above)
 LEGACY_FLOOR_FIT = 1          # checkpoints that do not record one
@@ -106,13 +106,18 @@ def fit_floor(points: torch.Tensor, valid: torch.Tensor, version: int = FLOOR_FI
     normal = torch.where(flip[..., None], -normal, normal)
     offset = torch.where(flip, -offset, offset)
     # Score on a sparse grid of valid pixels.
-    sp = points[:, ::SCORE_STRIDE, ::SCORE_STRIDE].reshape(n, -1, 3)
-    sv = valid[:, ::SCORE_STRIDE, ::SCORE_STRIDE].reshape(n, -1)[:, None, :]
+    stride = _SCORE_STRIDE[version]
+    sp = points[:, ::stride, ::stride].reshape(n, -1, 3)
+    sv = valid[:, ::stride, ::stride].reshape(n, -1)[:, None, :]
     signed = torch.einsum("nhc,npc->nhp", normal, sp) - offset[..., None]
-    score = ((signed.abs() < inlier_m) & sv).sum(-1)
-    if version >= 2:
-        score = score - ((signed < -inlier_m) & sv).sum(-1)
-    score = torch.where(usable, score, torch.full_like(score, torch.iinfo(score.dtype).min))
+    if version == 1:
+        score = ((signed.abs() < inlier_m) & sv).sum(-1).to(points.dtype)
+    else:
+        # +1 per point within the band, -1 per point beneath it, in one float pass (the
+        # bool sums of version 1 cost more than the comparisons, in training batches).
+        vote = torch.where(signed < -inlier_m, -1.0, (signed < inlier_m).to(points.dtype))
+        score = (vote * sv).sum(-1)
+    score = torch.where(usable, score, torch.full_like(score, -float("inf")))
     best = score.argmax(1)
     normal, offset = _refine(flat_p, flat_v, normal[take, best], offset[take, best], inlier_m)
     # Orient towards the camera (the origin): the camera's own height must be positive.
