@@ -21,6 +21,7 @@ from task_outcome_ros.labels import (
     outcomes_present,
     presence_scores,
 )
+from task_outcome_ros.model import DEFAULT_NORMALISATION, check_normalisation
 from training.config import ConfigError, TrainConfig
 from training.evaluate import confusion
 
@@ -229,6 +230,12 @@ def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
     old = {k: v for k, v in saved.items() if k != "lovasz_weight"}     # predates the field
     assert resume_differences(old, cfg, "bf16", "bf16") == [
         "lovasz_weight: '<not recorded>' -> 0.5"]
+    # A run saved before floor fit version 2 sees other heights: not resumable.
+    now = check_normalisation(DEFAULT_NORMALISATION)
+    before = check_normalisation({k: v for k, v in now.items() if k != "floor_fit"})
+    assert resume_differences(saved, cfg, "bf16", "bf16", now, now) == []
+    assert resume_differences(saved, cfg, "bf16", "bf16", before, now) == [
+        "normalisation floor_fit: 1 -> 2"]
 
 
 def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_path):

@@ -45,6 +45,7 @@ from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
     INTRINSICS_FROM_CAMERA_INFO,
     build_model,
+    check_normalisation,
     network_input,
 )
 from training.config import TrainConfig, save_json, to_dict
@@ -303,10 +304,13 @@ RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
 
 
 def resume_differences(saved: dict, cfg: TrainConfig, saved_precision: str | None,
-                       precision: str) -> list[str]:
+                       precision: str, saved_normalisation: dict | None = None,
+                       normalisation: dict | None = None) -> list[str]:
     """What differs between a saved run's training config and ``cfg``, as "field: old -> new"
     lines; empty when the run may be resumed. A field the saved run did not record (it
-    predates the field) counts as a difference: its value then is unknown."""
+    predates the field) counts as a difference: its value then is unknown. The input
+    normalisations (both through ``check_normalisation``) are compared too: code changes
+    such as the floor fit version change the inputs without changing the config."""
     now = json.loads(json.dumps(to_dict(cfg)))
     missing = "<not recorded>"
     differences = [f"{k}: {saved.get(k, missing)!r} -> {now.get(k, missing)!r}"
@@ -314,6 +318,11 @@ def resume_differences(saved: dict, cfg: TrainConfig, saved_precision: str | Non
                    if saved.get(k, missing) != now.get(k, missing)]
     if saved_precision != precision:
         differences.append(f"precision: {saved_precision} -> {precision}")
+    saved_normalisation, normalisation = saved_normalisation or {}, normalisation or {}
+    differences += [f"normalisation {k}: {saved_normalisation.get(k, missing)!r} -> "
+                    f"{normalisation.get(k, missing)!r}"
+                    for k in sorted(set(saved_normalisation) | set(normalisation))
+                    if saved_normalisation.get(k, missing) != normalisation.get(k, missing)]
     return differences
 
 
@@ -381,7 +390,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     if resume and last_path.exists():
         state = checkpoint.load(last_path, device=str(device))
         differences = resume_differences(state.train_config.get("train") or {}, cfg,
-                                         state.extra.get("precision"), precision)
+                                         state.extra.get("precision"), precision,
+                                         state.normalisation, check_normalisation(norm))
         if differences:
             raise ValueError(f"{last_path} was trained with another config "
                              f"({'; '.join(differences)}); use a new --out or delete it to "
