@@ -19,7 +19,7 @@ The floor is not simply the dominant plane: the container's inner floor lies par
 only 0.02 m up and can fill as much of the view. Fit version 1 (checkpoints before stop 15)
 drew triples among all pixels, kept the plane with the most inliers within 0.015 m, and so
 often settled on a plane tilted through both floors: on 500 validation images the rim came
-out 2.4 mm low on average, more than 3 mm off in 132 of them and up to 20 mm off, while a
+out 2.3 mm low on average, more than 3 mm off in 128 of them and up to 24 mm off, while a
 near-rim box's whole margin is millimetres. Version 2 draws triples among valid pixels only
 (in far-floor views most pixels are invalid and few triples landed on the floor), narrows the
 band to 0.008 m (2 sd of the working-size noise at 3.25 m) and scores a plane by its inliers
