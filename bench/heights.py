@@ -65,9 +65,9 @@ def main() -> None:
     if not (RUN_DIR / "manifest.json").is_file():
         raise SystemExit(f"no dataset at {RUN_DIR}: `make ship` (or `python -m training "
                          "dataset`) makes it")
-    images = [im for im in load_manifest(RUN_DIR)["images"] if im["split"] == "val"]
-    images = images[:args.images]
-    cfg = dataset_config_from_dict(load_manifest(RUN_DIR)["config"])
+    manifest = load_manifest(RUN_DIR)
+    images = [im for im in manifest["images"] if im["split"] == "val"][:args.images]
+    cfg = dataset_config_from_dict(manifest["config"])
     floor_z = {int(e["episode"]): float(e["floor_z"]) for e in
                load_chunks(RUN_DIR / "simulate", cfg.episodes, cfg.chunk_size)}
     variants = {f"fit{fit}_{cam}": (fit, cam) for fit in (LEGACY_FLOOR_FIT, FLOOR_FIT)

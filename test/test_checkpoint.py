@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_floor import TWO_CHANNEL_NORMALISATION, _container_floor_scene
 
 from task_outcome_ros import checkpoint
 from task_outcome_ros.checkpoint import CheckpointError
@@ -164,9 +165,8 @@ def test_cuda_device_without_cuda(tmp_path: Path) -> None:
 def test_channel_count_must_match_the_normalisation(tmp_path: Path) -> None:
     path = tmp_path / "m.pt"
     _save(path)
-    legacy = {k: v for k, v in DEFAULT_NORMALISATION.items()
-              if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
-    _rewrite(path, normalisation=legacy)  # 2-channel preprocessing for a 3-channel net
+    # 2-channel preprocessing for a 3-channel net
+    _rewrite(path, normalisation=TWO_CHANNEL_NORMALISATION)
     with pytest.raises(CheckpointError, match="input channels"):
         checkpoint.load(path)
 
@@ -174,20 +174,16 @@ def test_channel_count_must_match_the_normalisation(tmp_path: Path) -> None:
 def test_two_channel_checkpoint_from_before_heights_still_segments(tmp_path: Path) -> None:
     from task_outcome_ros.inference import OutcomeSegmenter
 
-    legacy = {k: v for k, v in DEFAULT_NORMALISATION.items()
-              if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
     path = tmp_path / "legacy.pt"
     torch.manual_seed(0)
     model = OutcomeFCN(**{**ARGS, "in_channels": 2})
     checkpoint.save(path, model, model_args={**ARGS, "in_channels": 2}, input_size=(32, 24),
-                    normalisation=legacy, train_config={}, metrics={})
+                    normalisation=TWO_CHANNEL_NORMALISATION, train_config={}, metrics={})
     result = OutcomeSegmenter(path, backend="torch").segment(np.full((48, 64), 2.0, np.float32))
     assert result.labels.shape == (48, 64)
 
 
 def test_checkpoint_keeps_the_floor_fit_it_was_trained_on(tmp_path: Path) -> None:
-    from test_floor import _container_floor_scene
-
     from task_outcome_ros.floor import FLOOR_FIT, LEGACY_FLOOR_FIT
     from task_outcome_ros.inference import OutcomeSegmenter
 

@@ -24,6 +24,10 @@ from task_outcome_ros.model import (
     preprocess,
 )
 
+# The normalisation of checkpoints from before the height channel: depth and validity only.
+TWO_CHANNEL_NORMALISATION = {k: v for k, v in DEFAULT_NORMALISATION.items()
+                             if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
+
 
 def _tilted_scene(h: int = 120, w: int = 160, camera_height: float = 1.5,
                   elevation_deg: float = 50.0, box_height: float = 0.3,
@@ -84,10 +88,8 @@ def test_preprocess_third_channel_is_scaled_height() -> None:
     x = preprocess(_tilted_scene(h=480, w=640), (160, 120))
     box_height = np.median(x[2, 45:55, 60:75]) * DEFAULT_NORMALISATION["height_scale_m"]
     assert abs(box_height - 0.3) < 0.01
-    legacy = {k: v for k, v in DEFAULT_NORMALISATION.items()
-              if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
-    assert input_channels(legacy) == 2
-    assert preprocess(_tilted_scene(), (16, 12), legacy).shape[0] == 2
+    assert input_channels(TWO_CHANNEL_NORMALISATION) == 2
+    assert preprocess(_tilted_scene(), (16, 12), TWO_CHANNEL_NORMALISATION).shape[0] == 2
 
 
 # A camera at the edge of the envelope (CONTRACTS §4): fx = fy = 590 px at 640 x 480 and the

@@ -280,7 +280,8 @@ def test_intrinsics_reach_only_a_network_trained_with_them(ckpt: Path, tmp_path:
 def test_normalisation_intrinsics_field_is_checked() -> None:
     with pytest.raises(ValueError, match="intrinsics"):
         check_normalisation(dict(DEFAULT_NORMALISATION, intrinsics="tf"))
-    two_channels = {k: v for k, v in DEFAULT_NORMALISATION.items()
-                    if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
+    from test_floor import TWO_CHANNEL_NORMALISATION
+
     with pytest.raises(ValueError, match="height channel"):
-        check_normalisation(dict(two_channels, intrinsics=INTRINSICS_FROM_CAMERA_INFO))
+        check_normalisation(dict(TWO_CHANNEL_NORMALISATION,
+                                 intrinsics=INTRINSICS_FROM_CAMERA_INFO))

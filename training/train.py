@@ -303,6 +303,16 @@ def near_rim_sample_weights(run_dir: Path, indices: np.ndarray, weight: float
 RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
 
 
+def _field_differences(old: dict, new: dict, prefix: str = "",
+                       ignore: frozenset[str] = frozenset()) -> list[str]:
+    """"<prefix>field: old -> new" for every field that differs; a field only one side has
+    differs from "<not recorded>" (its value on the other side is unknown)."""
+    missing = "<not recorded>"
+    return [f"{prefix}{k}: {old.get(k, missing)!r} -> {new.get(k, missing)!r}"
+            for k in sorted((set(old) | set(new)) - ignore)
+            if old.get(k, missing) != new.get(k, missing)]
+
+
 def resume_differences(saved: dict, cfg: TrainConfig, saved_precision: str | None,
                        precision: str, saved_normalisation: dict | None = None,
                        normalisation: dict | None = None) -> list[str]:
@@ -312,18 +322,11 @@ def resume_differences(saved: dict, cfg: TrainConfig, saved_precision: str | Non
     normalisations (both through ``check_normalisation``) are compared too: code changes
     such as the floor fit version change the inputs without changing the config."""
     now = json.loads(json.dumps(to_dict(cfg)))
-    missing = "<not recorded>"
-    differences = [f"{k}: {saved.get(k, missing)!r} -> {now.get(k, missing)!r}"
-                   for k in sorted((set(saved) | set(now)) - RESUME_FREE_FIELDS)
-                   if saved.get(k, missing) != now.get(k, missing)]
+    differences = _field_differences(saved, now, ignore=RESUME_FREE_FIELDS)
     if saved_precision != precision:
         differences.append(f"precision: {saved_precision} -> {precision}")
-    saved_normalisation, normalisation = saved_normalisation or {}, normalisation or {}
-    differences += [f"normalisation {k}: {saved_normalisation.get(k, missing)!r} -> "
-                    f"{normalisation.get(k, missing)!r}"
-                    for k in sorted(set(saved_normalisation) | set(normalisation))
-                    if saved_normalisation.get(k, missing) != normalisation.get(k, missing)]
-    return differences
+    return differences + _field_differences(saved_normalisation or {}, normalisation or {},
+                                            prefix="normalisation ")
 
 
 def manifest_intrinsics(manifest: dict, indices: np.ndarray) -> np.ndarray:
