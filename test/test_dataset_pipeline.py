@@ -32,10 +32,16 @@ from task_outcome_ros.labels import (
     outcomes_present,
 )
 from training.chunks import load_chunks
-from training.config import DatasetConfig, SceneConfig, dataset_config_from_dict, load_json
+from training.config import (
+    DatasetConfig,
+    DiscoverConfig,
+    SceneConfig,
+    dataset_config_from_dict,
+    load_json,
+)
 from training.dataset import split_episodes
-from training.discover import name_cluster
-from training.geometry import geometric_outcome, object_measurements
+from training.discover import features, name_cluster
+from training.geometry import SAMPLE_GRID, geometric_outcome, object_measurements
 from training.render import draw_camera, read_pair, render, render_episode, scene_boxes
 from training.seeding import episode_rng
 
@@ -179,6 +185,29 @@ def test_discovery_finds_the_three_outcomes(discovery_run):
     outcomes = load_json(discovery_run / "outcomes.json")["outcomes"]
     episodes = load_chunks(discovery_run / "simulate", 400, 100)
     assert [len(o) for o in outcomes] == [len(e["objects"]) for e in episodes]
+
+
+def test_one_grid_point_outside_is_farther_than_eps_from_fully_inside():
+    """The gap discovery relies on: a box poking out of the container by one sample point is
+    not within DBSCAN's eps of the fully-inside spike, so it cannot chain into success."""
+    base = {"com_offset": 0.5}
+    inside, one_out = features([{**base, "inside_fraction": 1.0},
+                                {**base, "inside_fraction": 1.0 - 1.0 / SAMPLE_GRID**3}])
+    assert inside[1] == 0.0
+    assert one_out[1] - inside[1] > 3 * DiscoverConfig().eps
+    assert features([{**base, "inside_fraction": 0.0}])[0, 1] == pytest.approx(1.0, abs=1e-3)
+
+
+def test_success_objects_are_entirely_inside(discovery_run):
+    """No object that sticks out of the container by any amount is discovered as a success."""
+    cfg = dataset_config_from_dict(load_json(discovery_run / "config.json"))
+    outcomes = load_json(discovery_run / "outcomes.json")["outcomes"]
+    episodes = load_chunks(discovery_run / "simulate", 400, 100)
+    poking_out = [(e["episode"], k) for e, names in zip(episodes, outcomes)
+                  for k, (obj, name) in enumerate(zip(e["objects"], names))
+                  if name == "success"
+                  and object_measurements(obj, e, cfg.scene)["inside_fraction"] < 1.0]
+    assert poking_out == []
 
 
 def _assert_png(path: Path) -> None:

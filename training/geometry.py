@@ -9,7 +9,7 @@ from training.config import SceneConfig
 # Sample points per box axis for volume fractions. The grid includes the box's faces, so a box
 # that pokes out of the container by any amount loses at least one point: "fully inside" is
 # exact, which is what separates success from stuck objects (see discover.py).
-_GRID = 10
+SAMPLE_GRID = 10
 # Resting contacts interpenetrate by a few mm in Bullet; a box lying against the inner wall
 # is inside the container, so the inner footprint gets this much tolerance.
 CONTACT_SLOP = 0.005  # m
@@ -35,7 +35,7 @@ def to_container_frame(points: np.ndarray, container_yaw: float, floor_z: float)
 
 def box_sample_points(size, position, orientation) -> np.ndarray:
     """A uniform grid of points filling a box, faces included, in world coordinates."""
-    axes = [np.linspace(-0.5, 0.5, _GRID)] * 3
+    axes = [np.linspace(-0.5, 0.5, SAMPLE_GRID)] * 3
     g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3) * np.asarray(size)
     return g @ quat_to_matrix(orientation).T + np.asarray(position)
 
