@@ -31,13 +31,13 @@ test: $(STAMP)
 test-all: $(STAMP)
 	$(PY) -m pytest -q
 
-# Quick retraining profile (<= 20 min on 2 cores; 18 min 12 s measured in stop 15): the
+# Quick retraining profile (<= 20 min on 2 cores; 18 min 26 s measured in stop 16): the
 # default 10,000-episode dataset, 7 epochs at the training defaults (channels-last, bf16 where
 # the CPU has it natively: about 0.5x the fp32 step time here, bench/train_step.py; near-rim
 # images drawn 2.5x as often; the per-image outcome IoU loss; heights from each image's
 # camera). More scenes, fewer passes: 10,000 x 7 matched 7,500 x 10 on the seed-1 set (0.961
-# both). Stop 15 (floor fit 2) scored 0.982 on the shipped model's own 500-image validation
-# split and 0.976 on seed-1 (stop 14: 0.978 / 0.972). The weight average gets a shorter
+# both). Stop 16 (labels re-discovered) scored 0.978 on the shipped model's own 500-image
+# validation split and 0.976 on seed-1 (stop 15: 0.982 / 0.976). The weight average gets a shorter
 # memory (0.993 per step) to match the ~2,100-step schedule.
 train: $(STAMP)
 	$(PY) -m training run --out runs/quick --episodes 10000 --epochs 7 --ema-decay 0.993 \
