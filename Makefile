@@ -6,11 +6,11 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test test-all train ship bench lint clean
+.PHONY: setup demo test test-unit test-all train ship bench lint clean
 
 setup: $(STAMP)
 
-$(STAMP): requirements.txt setup.py setup.cfg package.xml
+$(STAMP): requirements.txt requirements-runtime.txt setup.py setup.cfg package.xml
 	@command -v $(PYTHON) >/dev/null || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3.12 ...'"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
@@ -21,24 +21,24 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 # The whole story on a small simulated bag: generate, start outcome_node, replay over DDS,
 # record, score against ground truth, write a contact sheet and a summary.
 demo: $(STAMP)
-	$(PY) -m task_outcome_ros.demo --out runs/demo
+	$(PY) -m training demo --out runs/demo
 
 # Fast suite (CI): unit tests, the real node over DDS, a small end-to-end pipeline run.
 test: $(STAMP)
 	$(PY) -m pytest -q -m "not slow"
 
+# The pure-function tier alone: seconds, for the edit-test loop.
+test-unit: $(STAMP)
+	$(PY) -m pytest -q -m "unit and not slow"
+
 # Everything, including the heavy tests.
 test-all: $(STAMP)
 	$(PY) -m pytest -q
 
-# Quick retraining profile (<= 20 min on 2 cores; 18 min 26 s measured in stop 16): the
-# default 10,000-episode dataset, 7 epochs at the training defaults (channels-last, bf16 where
-# the CPU has it natively: about 0.5x the fp32 step time here, bench/train_step.py; near-rim
-# images drawn 2.5x as often; the per-image outcome IoU loss; heights from each image's
-# camera). More scenes, fewer passes: 10,000 x 7 matched 7,500 x 10 on the seed-1 set (0.961
-# both). Stop 16 (labels re-discovered) scored 0.978 on the shipped model's own 500-image
-# validation split and 0.976 on seed-1 (stop 15: 0.982 / 0.976). The weight average gets a shorter
-# memory (0.993 per step) to match the ~2,100-step schedule.
+# Quick retraining profile (<= 20 min on 2 cores; 18 min 26 s measured for model 0.2.0's
+# data): the default 10,000-episode dataset, 7 epochs at the training defaults (docs/training.md).
+# It scored 0.978 on the shipped model's 500-image validation split and 0.976 on the seed-1 set.
+# The weight average gets a shorter memory (0.993 per step) to match the ~2,100-step schedule.
 train: $(STAMP)
 	$(PY) -m training run --out runs/quick --episodes 10000 --epochs 7 --ema-decay 0.993 \
 		--max-minutes 15

@@ -8,7 +8,7 @@ PACKAGE = "task_outcome_ros"
 
 setup(
     name=PACKAGE,
-    version="0.1.0",
+    version="0.2.0",
     packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*", "training", "training.*"]),
     package_data={PACKAGE: ["models/*.pt", "models/*.onnx", "models/*.json"]},
     data_files=[
@@ -17,10 +17,14 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.xml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
-    # Runtime deps come from requirements.txt (venv) or rosdep keys in package.xml (ROS);
-    # listing them here would make colcon's setuptools try to fetch them.
+    # Runtime deps come from requirements-runtime.txt (venv) or rosdep keys in package.xml
+    # (ROS); listing them here would make colcon's setuptools try to fetch them. The extras
+    # name what the offline side adds: `pip install -e .[training]`.
     install_requires=["setuptools"],
-    extras_require={"test": ["pytest"]},
+    extras_require={
+        "training": ["pybullet>=3.2.6", "scikit-learn>=1.4", "matplotlib>=3.8", "onnx>=1.16"],
+        "test": ["pytest>=8"],
+    },
     zip_safe=False,
     python_requires=">=3.10",
     maintainer="task_outcome_ros maintainers",
@@ -31,7 +35,7 @@ setup(
         "console_scripts": [
             f"outcome_node = {PACKAGE}.node:main",
             f"outcome_bag = {PACKAGE}.bag_tools:offline_main",
-            f"outcome_replay = {PACKAGE}.bag_tools:replay_main",
+            f"outcome_replay = {PACKAGE}.replay:main",
         ],
     },
 )

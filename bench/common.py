@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import platform
+import subprocess
+import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SHIPPED_MODEL = REPO / "task_outcome_ros" / "models" / "outcome_fcn.pt"
 
 # BENCH_RESULTS redirects the figures (the smoke tests write to a temporary file, so they
 # never overwrite the measured ones).
@@ -37,10 +44,45 @@ def percentiles(values: list[float]) -> dict:
             "min": round(float(a.min()), 2)}
 
 
+def git_revision() -> str | None:
+    """The checked-out commit, with ``+dirty`` when tracked files differ from it."""
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=REPO,
+                             capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=REPO, capture_output=True, text=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None  # not a git checkout (an installed copy)
+    return rev + ("+dirty" if dirty else "")
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def relative_paths(value: Any) -> Any:
+    """Every string with this checkout's (or the interpreter's) absolute prefix made relative,
+    so results.json says ``runs/default``, not where one machine keeps it."""
+    if isinstance(value, dict):
+        return {k: relative_paths(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [relative_paths(v) for v in value]
+    if isinstance(value, str):
+        for prefix, short in ((str(REPO) + os.sep, ""), (sys.prefix + os.sep, "<venv>/")):
+            value = value.replace(prefix, short)
+        return value
+    return value
+
+
 def record(section: str, data: dict, command: str) -> None:
-    """Merge one benchmark's figures into bench/results.json under ``section``."""
+    """Merge one benchmark's figures into bench/results.json under ``section``, with the git
+    revision measured and the sha256 of the shipped model."""
     results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    results[section] = {"command": command, "machine": machine(),
-                        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), **data}
+    provenance = {"git_revision": git_revision(),
+                  "shipped_model_sha256": sha256(SHIPPED_MODEL) if SHIPPED_MODEL.exists()
+                  else None}
+    results[section] = relative_paths(
+        {"command": command, "machine": machine(),
+         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), **provenance, **data})
     RESULTS.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
     print(json.dumps(results[section], indent=1))

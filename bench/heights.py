@@ -3,14 +3,14 @@ each image's own camera.
 
 Not a timing: the height above the floor (``floor.height_above_floor``, the network's third
 input) is computed at the working size from validation images of the default run four ways:
-with floor fit version 1 (checkpoints before stop 15) and version 2, each with the envelope's
-nominal camera and with the camera the image was rendered with (what camera_info gives the
-node). Each is compared with the true height of the same depth samples, obtained from the
-renderer's camera pose, above the episode's simulated floor level, on pixels more than 15 cm
+with floor fit version 1 (models up to 0.1.7) and version 2, each with the envelope's nominal
+camera and with the camera the image was rendered with (what camera_info gives the node).
+Each is compared with the true height of the same depth samples, obtained from the renderer's
+camera pose, above the episode's simulated floor level, on pixels more than 15 cm
 above the floor (box tops, walls, the rim: where success and stuck_on_rim differ by
 millimetres). Sensor noise is shared by both sides, so only the camera model and the plane fit
-are measured. (Until stop 15 both sides had their median over background pixels subtracted,
-which hid a fitted plane's offset.)
+are measured. (An earlier version of this bench subtracted each side's median over background
+pixels, which hid a fitted plane's offset.)
 
     python bench/heights.py [--images 200]
 

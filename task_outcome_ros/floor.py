@@ -1,10 +1,10 @@
 """Height above the floor, per pixel, from one depth image (the network's third input channel).
 
 Why: telling ``success`` from ``stuck_on_rim`` means asking whether a box's top is above the
-container's rim (CONTRACTS §2) and telling ``fell_outside`` apart means asking whether it lies
-on the floor. Both are questions about height above the floor, which a small CNN cannot
-easily recover from raw depth when the camera pose changes from image to image (the floor's
-depth runs in a different ramp in every view). Depth CNNs commonly get it handed in instead
+container's rim (docs/interface.md §2) and telling ``fell_outside`` apart means asking
+whether it lies on the floor. Both are questions about height above the floor, which a small
+CNN cannot easily recover from raw depth when the camera pose changes from image to image (the
+floor's depth runs in a different ramp in every view). Depth CNNs commonly get it handed in instead
 (Gupta et al. 2014, "HHA" encoding); so do we.
 
 How: back-project the working-size depth with the image's own intrinsics when they are known
@@ -16,7 +16,7 @@ floor by RANSAC over pixel triples, refine it by least squares on its inliers, a
 every point's signed distance to it, positive towards the camera.
 
 The floor is not simply the dominant plane: the container's inner floor lies parallel to it
-only 0.02 m up and can fill as much of the view. Fit version 1 (checkpoints before stop 15)
+only 0.02 m up and can fill as much of the view. Fit version 1 (models up to 0.1.7)
 drew triples among all pixels, kept the plane with the most inliers within 0.015 m, and so
 often settled on a plane tilted through both floors: on 500 validation images the rim came
 out 2.3 mm low on average, more than 3 mm off in 128 of them and up to 24 mm off, while a
@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import torch
 
-# Nominal focal length over image width: fx in [525, 590] px at 640 px (CONTRACTS §4).
+# Nominal focal length over image width: fx in [525, 590] px at 640 px (docs/interface.md §4).
 FOCAL_OVER_WIDTH = (525.0 + 590.0) / 2.0 / 640.0
 HYPOTHESES = 96               # triples; floor >= 44 % of valid pixels: P(no floor triple) < 3e-4
 _SCORE_STRIDE = {1: 3, 2: 4}  # score hypotheses on every k-th pixel per axis (speed)

@@ -3,23 +3,22 @@
 Why: an object has exactly one outcome, but the network sometimes paints a thin fringe of a
 second outcome on it (a few stuck_on_rim pixels along the edge of a box that fell against the
 outer wall, say). A fringe of 50+ pixels at 640 x 480 is enough to make the presence rule
-report an outcome that is not there; such fringes were 4 of the 22 validation mistakes of the
-stop-7 model. A fragment is an 8-connected component of one outcome class with fewer than
+report an outcome that is not there; such fringes were 4 of the 22 validation mistakes of model
+0.1.1. A fragment is an 8-connected component of one outcome class with fewer than
 ``max_pixels`` pixels that *touches* pixels of another outcome; it takes the outcome most
 common in its one-pixel ring. Fragments touching no other outcome (a small object of its own,
 e.g. one cut by the image border) are left alone.
 
 The threshold (at 640 x 480) follows the model. It is chosen on the validation split
 (runs/default, 500 images) and the first 1,000 training images, then checked on the
-independent set (runs/seed1, 1,000 images); the README keeps each model's sweep. For the
-shipped (stop-13) model, without / 512 / 1024 / 1536 px give 0.982 / **0.986** / 0.986 / 0.984
-on validation and 0.987 / 0.987 / 0.980 / 0.977 on the training images: 20 mistakes on both
-together at 512, 22 without, 27 at 1024; seed-1 0.978 / 0.982 / 0.977 / 0.974. Earlier models
-needed absorption more (the stop-12 model: 0.974 without, 0.982 at 512 on validation), because
-their cross-entropy-only loss charged a fringe by its pixels. Larger is not free: a success box
-half hidden behind a stuck one shows a small visible part that touches the stuck box, and it
-gets absorbed (that is what 1536 px loses). Merging whole connected objects to their majority
-outcome instead *lost* 1-8 points: touching boxes with different outcomes merge.
+independent set (runs/seed1, 1,000 images); docs/experiments.md keeps each model's sweep. For
+model 0.2.0, without / 512 / 1024 / 1536 px make 18 / **19** / 24 / 32 mistakes on the two
+together and 12 / **9** / 11 / 13 on seed-1, so 512 px stays, as for the four models before.
+Models trained on cross-entropy alone needed absorption more (model 0.1.5: 0.974 without, 0.982
+at 512 on validation), because that loss charged a fringe by its pixels. Larger is not free: a
+success box half hidden behind a stuck one shows a small visible part that touches the stuck
+box, and it gets absorbed (that is what 1536 px loses). Merging whole connected objects to
+their majority outcome instead *lost* 1-8 points: touching boxes with different outcomes merge.
 """
 
 from __future__ import annotations

@@ -189,39 +189,44 @@ class OutcomeSegmenter:
     def _choose_backend(self, backend: str, num_threads: int | None) -> tuple[str, str]:
         if backend == "torch":
             return "torch", "requested"
-        from task_outcome_ros.onnx_export import META_SOURCE_SHA256, onnx_path_for, read_metadata
+        from task_outcome_ros.onnx_export import (
+            META_SOURCE_SHA256,
+            onnx_path_for,
+            session_metadata,
+        )
 
         onnx_path = onnx_path_for(self.checkpoint.path)
-        problem = None
+        problem, session = None, None
         if self.device.type != "cpu":
             problem = f"device is {self.device}, the ONNX backend runs on the CPU"
         elif not onnx_path.is_file():
             problem = f"no ONNX file at {onnx_path}"
         else:
             try:
-                meta = read_metadata(onnx_path)
+                import onnxruntime as ort
+            except ImportError:
+                ort, problem = None, "onnxruntime is not installed"
+        if problem is None:
+            opts = ort.SessionOptions()
+            opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+            if num_threads is not None:
+                opts.intra_op_num_threads = int(num_threads)
+            opts.inter_op_num_threads = 1
+            try:
+                session = ort.InferenceSession(str(onnx_path), opts,
+                                               providers=["CPUExecutionProvider"])
+                meta = session_metadata(session)
             except Exception as exc:  # corrupt or unreadable ONNX file
                 meta, problem = {}, f"ONNX file {onnx_path} is unreadable: {exc}"
             if problem is None and meta.get(META_SOURCE_SHA256) != self.checkpoint.sha256:
                 problem = (f"ONNX file {onnx_path} was not exported from {self.checkpoint.path}"
                            " (checkpoint hash differs); re-run "
                            "`python -m task_outcome_ros.onnx_export`")
-        if problem is None:
-            try:
-                import onnxruntime as ort
-            except ImportError:
-                problem = "onnxruntime is not installed"
         if problem is not None:
             if backend == "onnx":
                 raise CheckpointError(f"backend 'onnx' unavailable: {problem}")
             return "torch", problem
-        opts = ort.SessionOptions()
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        if num_threads is not None:
-            opts.intra_op_num_threads = int(num_threads)
-        opts.inter_op_num_threads = 1
-        self._session = ort.InferenceSession(str(onnx_path), opts,
-                                             providers=["CPUExecutionProvider"])
+        self._session = session
         return "onnx", f"{onnx_path} matches the checkpoint"
 
     def _predict_small(self, x: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The one vocabulary: class ids, outcome names, colours and the presence rule (CONTRACTS §3).
+"""The one vocabulary: class ids, outcome names, colours, presence rule (docs/interface.md §3).
 
 Training, evaluation, the node and the tools all import these; never copy a constant.
 """

@@ -15,7 +15,7 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    callers pass them when they know them (camera_info on the robot); without the key, or
    without intrinsics, heights come from the envelope's nominal camera. ``floor_fit`` is the
    version of ``floor.fit_floor`` the network was trained on; a checkpoint without it was
-   trained on version 1 (before stop 15) and keeps getting it.
+   trained on version 1 (models up to 0.1.7) and keeps getting it.
 
 The channels are computed in one place, ``network_input`` (torch), after the one resize,
 ``resize_depth`` (numpy, NaN-aware area average). ``preprocess`` (one numpy image) and
@@ -42,7 +42,7 @@ from task_outcome_ros.floor import (
 from task_outcome_ros.labels import NUM_CLASSES
 
 IN_CHANNELS = 3
-# Cameras sit 1.6-2.4 m from the container (CONTRACTS §4): 2 m maps to 0, a metre to 1.
+# Cameras sit 1.6-2.4 m from the container (docs/interface.md §4): 2 m maps to 0, a metre to 1.
 # Clip keeps a stray far return (Kinect range tops out at 4.5 m) from dominating activations.
 # Heights are scaled by the wall height (0.25 m), so the rim sits at 1.
 DEFAULT_NORMALISATION: dict[str, Any] = {

@@ -1,9 +1,9 @@
-"""The rclpy edge (CONTRACTS §5): depth image in -> labels, status, overlay (and markers) out.
+"""The rclpy edge (docs/interface.md §5): depth image in -> labels, status, overlay, markers out.
 
-With replay.py, the only module of the package that imports rclpy. It converts messages to
-arrays and back and calls ``inference.OutcomeSegmenter``; what the outputs say (status fields,
-overlay) comes from ``outcome_report.py``, shared with the offline bag tool, and everything it
-knows about depth and labels from ``depth.py`` and ``labels.py``.
+The node converts messages to arrays and back. Each frame goes through
+``frames.process_frame``, the step ``outcome_bag`` shares (decode, camera_info, segment, status
+fields, overlay), so the node itself only holds parameters, QoS, threading and publishing.
+Besides this module only the DDS tools (replay.py, live_bag.py) import rclpy.
 
 Real time: the subscription callback only keeps the newest image (an overwritten, never
 processed one counts as dropped); one worker thread processes whatever is newest, so a slow
@@ -41,8 +41,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from task_outcome_ros import labels as L
 from task_outcome_ros import outcome_report as R
-from task_outcome_ros.depth import DepthDecodeError, decode_depth
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
+from task_outcome_ros.frames import NO_CAMERA_INFO_NOTE, process_frame
 
 NODE_NAME = "outcome_node"
 STATUS_NAME = R.STATUS_NAME
@@ -255,52 +255,29 @@ class OutcomeNode(Node):
 
     def _process(self, msg: Image, t_received: float, camera_info: CameraInfo | None,
                  dropped: int) -> None:
-        header = msg.header
-        try:
-            depth = decode_depth(msg.encoding, msg.height, msg.width, msg.step,
-                                 bool(msg.is_bigendian), msg.data)
-        except DepthDecodeError as exc:
-            self.get_logger().warning(f"skipping depth frame (frame_id '{header.frame_id}'): "
-                                      f"{exc}", throttle_duration_sec=WARN_THROTTLE_S)
-            self._publish_error(header, f"bad depth image: {exc}", dropped, t_received)
+        overlay_alpha = (float(self._params["overlay_alpha"])
+                         if self._params["publish_overlay"] else None)
+        frame = process_frame(self._segmenter, msg, camera_info, overlay_alpha=overlay_alpha,
+                              t_start=t_received, dropped=dropped)
+        log = self.get_logger()
+        for note in frame.notes:
+            if note == NO_CAMERA_INFO_NOTE:
+                log.warning(f"{note} (README: camera_info)", once=True)
+            else:
+                log.warning(note, throttle_duration_sec=WARN_THROTTLE_S)
+        if frame.error is not None:
+            log.warning(f"skipping depth frame (frame_id '{msg.header.frame_id}'): "
+                        f"{frame.error}", throttle_duration_sec=WARN_THROTTLE_S)
+            self._publish_status(msg.header, frame.fields)
             return
-        height, width = depth.shape
-        intrinsics, camera_note = None, None
-        if camera_info is not None:
-            try:
-                intrinsics = R.intrinsics_for_image(camera_info.width, camera_info.height,
-                                                    camera_info.k, width, height)
-            except ValueError as exc:
-                camera_note = f"ignored: {exc}"
-                self.get_logger().warning(f"camera_info {camera_note}",
-                                          throttle_duration_sec=WARN_THROTTLE_S)
-        if intrinsics is None and self._segmenter.uses_intrinsics:
-            self.get_logger().warning(
-                "no usable depth/camera_info: the network's height channel uses the nominal "
-                "camera, which is less accurate for boxes near the rim (README: accuracy "
-                "without camera_info)", once=True)
-        try:
-            # The intrinsics also sharpen the network's height channel when it was trained
-            # with them (OutcomeSegmenter.uses_intrinsics); without, the nominal camera.
-            res = self._segmenter.segment(depth, intrinsics)
-        except Exception as exc:
-            self.get_logger().error(f"inference failed on a {msg.width} x {msg.height} frame: "
-                                    f"{exc}", throttle_duration_sec=WARN_THROTTLE_S)
-            self._publish_error(header, f"inference failed: {exc}", dropped, t_received)
-            return
-
-        labels = np.ascontiguousarray(res.labels, dtype=np.uint8)
-        self._pub_labels.publish(_image_msg(header, labels, "mono8"))
-
-        fields = R.status_fields(res, intrinsics, camera_note=camera_note, dropped=dropped,
-                                 latency_ms=_latency_ms(t_received))
-        self._publish_status(header, fields)
-
-        if self._params["publish_overlay"]:
-            rgb = R.overlay_rgb(depth, labels, float(self._params["overlay_alpha"]))
-            self._pub_overlay.publish(_image_msg(header, rgb, "rgb8"))
+        # Labels and status first: they are what a manipulation stack waits for.
+        self._pub_labels.publish(_image_msg(msg.header, frame.labels, "mono8"))
+        self._publish_status(msg.header, frame.fields)
+        if frame.overlay is not None:
+            self._pub_overlay.publish(_image_msg(msg.header, frame.overlay, "rgb8"))
         if self._params["publish_markers"]:
-            self._pub_markers.publish(_markers(header, R.object_centroids(res, intrinsics)))
+            centroids = R.object_centroids(frame.result, frame.intrinsics)
+            self._pub_markers.publish(_markers(msg.header, centroids))
 
     # publishing ------------------------------------------------------------------------------
     def _publish_status(self, header: Header, fields: R.StatusFields) -> None:

@@ -15,6 +15,7 @@ import argparse
 import tempfile
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -34,11 +35,21 @@ def onnx_path_for(checkpoint_path: str | Path) -> Path:
 
 
 def read_metadata(onnx_path: str | Path) -> dict[str, str]:
-    """The custom metadata of an ONNX file (empty dict if it has none)."""
-    import onnx
+    """The custom metadata of an ONNX file (empty dict if it has none).
 
-    model = onnx.load(str(onnx_path), load_external_data=False)
-    return {p.key: p.value for p in model.metadata_props}
+    Read through onnxruntime, so a robot needs the runtime only; ``onnx`` is for exporting."""
+    return session_metadata(_cpu_session(str(onnx_path)))
+
+
+def session_metadata(session: Any) -> dict[str, str]:
+    """The custom metadata of an onnxruntime InferenceSession's model."""
+    return dict(session.get_modelmeta().custom_metadata_map)
+
+
+def _cpu_session(model: str | bytes, options: Any = None) -> Any:
+    import onnxruntime as ort
+
+    return ort.InferenceSession(model, options, providers=["CPUExecutionProvider"])
 
 
 def export_onnx(checkpoint_path: str | Path, onnx_path: str | Path | None = None, *,
@@ -75,9 +86,7 @@ def export_onnx(checkpoint_path: str | Path, onnx_path: str | Path | None = None
 
 
 def _verify(model_bytes: bytes, model: torch.nn.Module, channels: int, h: int, w: int) -> None:
-    import onnxruntime as ort
-
-    sess = ort.InferenceSession(model_bytes, providers=["CPUExecutionProvider"])
+    sess = _cpu_session(model_bytes)
     x = torch.randn(2, channels, h, w, generator=torch.Generator().manual_seed(0))
     with torch.inference_mode():
         ref = model(x).argmax(1).numpy()

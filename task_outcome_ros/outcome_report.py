@@ -1,4 +1,4 @@
-"""What one processed frame's outputs say: overlay pixels and status fields (CONTRACTS §5).
+"""What one processed frame's outputs say: overlay pixels and status fields (docs/interface.md §5).
 
 Pure functions (numpy and str in, numpy and plain tuples out, no rclpy), shared by the node and
 the bag tools, so a bag processed offline carries exactly what the node publishes live. The

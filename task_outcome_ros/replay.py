@@ -7,8 +7,8 @@ many it published. Messages are published as the bag's serialized CDR bytes (rcl
 ``Publisher.publish`` takes ``bytes``), so there is no conversion cost and the headers are the
 recorded ones (a ``--loop`` repeats the same stamps).
 
-Besides node.py the only module of the package that uses rclpy; it imports it inside ``main``
-so the package (and this module) still imports where ROS is not installed.
+One of the three modules that use rclpy (with node.py and live_bag.py); it imports it inside
+``main`` so the package (and this module) still imports where ROS is not installed.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from task_outcome_ros import bag_tools as B
+from task_outcome_ros import bag_io as B
 from task_outcome_ros.cli_args import positive_float, positive_int
 
 NODE_NAME = "outcome_replay"

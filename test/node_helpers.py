@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from model_helpers import make_checkpoint, make_depth_band_checkpoint  # noqa: F401 (re-export)
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -61,26 +62,6 @@ def ros_env(domain_id: int | None = None) -> dict[str, str]:
     return env
 
 
-def make_checkpoint(path: Path, favour: int | None = None, seed: int = 0) -> Path:
-    """A random-init checkpoint; ``favour`` = a class id whose head bias wins everywhere."""
-    import torch
-
-    from task_outcome_ros import checkpoint, model
-
-    torch.manual_seed(seed)
-    net = model.build_model(dict(model.DEFAULT_MODEL_ARGS))
-    if favour is not None:
-        with torch.no_grad():
-            net.head.weight.mul_(0.01)
-            net.head.bias.zero_()
-            net.head.bias[favour] = 10.0
-    checkpoint.save(path, net, model_args=dict(model.DEFAULT_MODEL_ARGS),
-                    input_size=model.DEFAULT_INPUT_SIZE,
-                    normalisation=dict(model.DEFAULT_NORMALISATION),
-                    train_config={}, metrics={})
-    return path
-
-
 def run_node_expect_exit(args: list[str], timeout: float = 30.0,
                          ) -> subprocess.CompletedProcess:
     """Run the node with --ros-args ``args``; it must exit by itself within ``timeout``."""
@@ -91,10 +72,11 @@ def run_node_expect_exit(args: list[str], timeout: float = 30.0,
 class NodeProcess:
     """outcome_node in a subprocess; stderr goes to a file so a chatty node never blocks."""
 
-    def __init__(self, args: list[str], domain_id: int, log_path: Path) -> None:
+    def __init__(self, args: list[str], domain_id: int, log_path: Path,
+                 command: list[str] | None = None) -> None:
         self.log_path = log_path
         self._log = open(log_path, "w")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen(node_command() + ["--ros-args", *args],
+        self.proc = subprocess.Popen((command or node_command()) + ["--ros-args", *args],
                                      env=ros_env(domain_id), stdout=self._log,
                                      stderr=subprocess.STDOUT)
 

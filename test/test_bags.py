@@ -1,10 +1,11 @@
 """Bags end to end: ``training export-bag`` -> ``outcome_bag`` (offline, rosbags only) and
 ``outcome_replay`` -> the real outcome_node over DDS.
 
-One tiny generated dataset run and one random-init checkpoint serve the module. Exports cover
-both storages and both encodings; outcome_bag runs once through its console script and once
-with rclpy blocked (the offline path must not need ROS); the replay test checks that the node
-answers every replayed frame and that its answers equal outcome_bag's for the same frames.
+One tiny generated dataset run and the depth-band checkpoint (model_helpers) serve the
+module. Exports cover both storages and both encodings; outcome_bag runs once through its
+console script and once with rclpy blocked (the offline path must not need ROS); the replay
+test checks that the node answers every replayed frame and that its answers equal
+outcome_bag's for the same frames.
 """
 
 from __future__ import annotations
@@ -25,10 +26,13 @@ pytest.importorskip("rclpy", reason="ROS 2 rclpy is not installed (node_helpers 
 
 import node_helpers as nh  # noqa: E402
 
+from task_outcome_ros import bag_io, ground_truth  # noqa: E402
 from task_outcome_ros import bag_tools as B  # noqa: E402
 from task_outcome_ros import labels as L  # noqa: E402
 from task_outcome_ros import outcome_report as R  # noqa: E402
 from task_outcome_ros.depth import decode_depth  # noqa: E402
+
+pytestmark = pytest.mark.ros
 
 N_FRAMES = 6
 RATE_HZ = 5.0
@@ -44,7 +48,7 @@ def _run(cmd: list[str], timeout: float = 120, **kw) -> subprocess.CompletedProc
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory) -> Path:
-    """A 12-episode dataset run, its bags (CLI) and a random-init checkpoint."""
+    """A 12-episode dataset run, its bags (CLI) and the depth-band checkpoint."""
     tmp = tmp_path_factory.mktemp("bags")
     result = _run([sys.executable, "-m", "training", "dataset", "--episodes", "12",
                    "--chunk-size", "6", "--out", str(tmp / "run")], cwd=tmp)
@@ -56,17 +60,18 @@ def work(tmp_path_factory) -> Path:
                        "--storage", storage, "--namespace", namespace, "--with-labels"])
         assert result.returncode == 0, result.stderr
         assert f"{N_FRAMES} frames" in result.stdout, result.stdout
-    nh.make_checkpoint(tmp / "random.pt", seed=1)
+    nh.make_depth_band_checkpoint(tmp / "depth_band.pt")
     return tmp
 
 
 def read_bag(path: Path) -> dict[str, list[tuple[int, object]]]:
     """topic -> [(log time, deserialized message)] in log-time order."""
     out: dict[str, list[tuple[int, object]]] = {}
-    reader = B.open_reader(path)
+    reader = bag_io.open_reader(path)
     try:
         for conn, log_time, raw in reader.messages():
-            out.setdefault(conn.topic, []).append((log_time, B.deserialize(raw, conn.msgtype)))
+            msg = bag_io.deserialize(raw, conn.msgtype)
+            out.setdefault(conn.topic, []).append((log_time, msg))
     finally:
         reader.close()
     return out
@@ -114,19 +119,19 @@ def test_export_bag_topics_stamps_camera_info_and_ground_truth(work, name):
     bag = work / name
     meta = (bag / "metadata.yaml").read_text()
     assert f"storage_identifier: {storage}" in meta
-    assert B.bag_storage(bag) == storage
+    assert bag_io.bag_storage(bag) == storage
     topics = read_bag(bag)
     assert sorted(topics) == [f"{namespace}/depth/camera_info", f"{namespace}/depth/image_raw"]
     images = topics[f"{namespace}/depth/image_raw"]
     infos = topics[f"{namespace}/depth/camera_info"]
     assert len(images) == len(infos) == N_FRAMES
     manifest = load_manifest(work / "run")["images"][:N_FRAMES]
-    truth = json.loads((bag / B.GROUND_TRUTH_FILE).read_text())
+    truth = json.loads((bag / ground_truth.GROUND_TRUTH_FILE).read_text())
     assert truth["n_frames"] == N_FRAMES and truth["encoding"] == encoding
     for i, ((t_img, img), (t_info, info), im, gt) in enumerate(
             zip(images, infos, manifest, truth["frames"])):
         stamp = EPOCH_NS + int(round(i * 1e9 / RATE_HZ))
-        assert t_img == t_info == stamp == B.stamp_to_ns(img.header.stamp) == gt["stamp_ns"]
+        assert t_img == t_info == stamp == bag_io.stamp_to_ns(img.header.stamp) == gt["stamp_ns"]
         assert key(img.header) == key(info.header) and img.header.frame_id == FRAME_ID
         assert img.encoding == encoding and not img.is_bigendian
         depth, labels = read_pair(work / "run", im["episode"])
@@ -153,7 +158,7 @@ def test_export_bag_is_deterministic_and_refuses_to_overwrite(work, tmp_path):
     assert a["frames"] == b["frames"]
 
     def raw(path):
-        reader = B.open_reader(path)
+        reader = bag_io.open_reader(path)
         try:
             return [(c.topic, t, bytes(d)) for c, t, d in reader.messages()]
         finally:
@@ -170,7 +175,7 @@ def test_export_bag_is_deterministic_and_refuses_to_overwrite(work, tmp_path):
 def processed(work) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
     """Both bags through outcome_bag: the console script, and -c with rclpy blocked."""
     out = {}
-    ckpt = str(work / "random.pt")
+    ckpt = str(work / "depth_band.pt")
     mcap = work / "mcap_32FC1_outcome"
     out["mcap_32FC1"] = mcap, _run(nh.script_command("outcome_bag", "task_outcome_ros.bag_tools")
                                    + [str(work / "mcap_32FC1"), "--model", ckpt, "--out",
@@ -218,32 +223,43 @@ def test_outcome_bag_outputs_match_the_input_frames(work, processed, name):
     summary = json.loads((out_bag / B.SUMMARY_FILE).read_text())
     assert summary["frames"] == N_FRAMES and summary["errors"] == 0
     score = json.loads((out_bag / B.SCORE_FILE).read_text())
-    assert score["n_images"] == N_FRAMES and 0.0 <= score["image_all_correct"] <= 1.0
     assert score["n_missing"] == score["n_errors"] == 0
+    # The score, recomputed from the status messages and the ground truth's pixel counts.
+    truth = ground_truth.load_ground_truth(work / name)
+    right = []
+    for frame, (_, status) in zip(truth["frames"], outputs[1]):
+        values = {kv.key: kv.value for kv in status.status[0].values}
+        threshold = L.presence_threshold(frame["height"], frame["width"])
+        right.append(all((values[f"{n}.present"] == "true")
+                         == (frame["pixel_counts"][n] >= threshold) for n in L.OUTCOME_NAMES))
+    assert score["n_images"] == N_FRAMES
+    assert score["image_all_correct"] == pytest.approx(sum(right) / N_FRAMES)
+    assert len(score["mistakes"]) == right.count(False)
     assert set(score["presence_recall"]) == set(L.OUTCOME_NAMES)
 
 
 def test_outcome_bag_no_overlay_no_copy_and_bad_frames(work, tmp_path):
     """Undecodable frames get an ERROR status with their header (no labels) and the run goes
     on; --no-overlay / --no-copy-input write only labels and status."""
-    writer = B.open_writer(tmp_path / "in", "sqlite3")
-    conn = writer.add_connection("/depth/image_raw", B.IMAGE, typestore=B.typestore())
+    writer = bag_io.open_writer(tmp_path / "in", "sqlite3")
+    conn = writer.add_connection("/depth/image_raw", bag_io.IMAGE, typestore=bag_io.typestore())
     cases = [("32FC1", np.full((48, 64), 2.0, "<f4").tobytes(), 64 * 4),
              ("rgb8", bytes(64 * 48 * 3), 64 * 3),
              ("16UC1", bytes(10), 64 * 2)]
     for i, (encoding, data, step) in enumerate(cases):
-        header = B.make_header(1_000_000_000 * (i + 1), "cam")
-        msg = B.msg_class(B.IMAGE)(header=header, height=48, width=64, encoding=encoding,
-                                   is_bigendian=0, step=step,
-                                   data=np.frombuffer(data, np.uint8))
-        writer.write(conn, 1_000_000_000 * (i + 1), B.serialize(msg, B.IMAGE))
+        header = bag_io.make_header(1_000_000_000 * (i + 1), "cam")
+        msg = bag_io.msg_class(bag_io.IMAGE)(header=header, height=48, width=64,
+                                             encoding=encoding, is_bigendian=0, step=step,
+                                             data=np.frombuffer(data, np.uint8))
+        writer.write(conn, 1_000_000_000 * (i + 1), bag_io.serialize(msg, bag_io.IMAGE))
     writer.close()
-    summary = B.process_bag(tmp_path / "in", tmp_path / "out", model=str(work / "random.pt"),
+    band = str(work / "depth_band.pt")
+    summary = B.process_bag(tmp_path / "in", tmp_path / "out", model=band,
                             overlay=False, copy_input=False, progress=False)
     assert summary["frames"] == 3 and summary["errors"] == 2 and summary["levels"]["ERROR"] == 2
     topics = read_bag(tmp_path / "out")
     assert sorted(topics) == ["/outcome/labels", "/outcome/status"]
-    assert [B.stamp_to_ns(m.header.stamp) for _, m in topics["/outcome/labels"]] == [10**9]
+    assert [bag_io.stamp_to_ns(m.header.stamp) for _, m in topics["/outcome/labels"]] == [10**9]
     statuses = [m for _, m in topics["/outcome/status"]]
     assert [s.status[0].level for s in statuses[1:]] == [R.ERROR, R.ERROR]
     assert all(s.status[0].message.startswith("bad depth image") for s in statuses[1:])
@@ -269,14 +285,14 @@ def test_scoring_counts_missing_and_error_frames_as_wrong():
                      for s, c in ((1, 500), (2, 0), (3, 500), (4, 0))]}
     yes = {"success": True, "fell_outside": False, "stuck_on_rim": False}
     no = dict.fromkeys(L.OUTCOME_NAMES, False)
-    report = B.score(gt, {1: yes, 2: yes, 3: None})
+    report = ground_truth.score(gt, {1: yes, 2: yes, 3: None})
     assert report["n_images"] == 4 and report["image_all_correct"] == 0.25
     assert (report["n_errors"], report["n_missing"]) == (1, 1)
     assert report["presence_precision"]["success"] == 0.5
     assert report["presence_recall"]["success"] == 0.5
-    assert B.score(gt, {1: yes, 2: no, 3: yes, 4: no})["image_all_correct"] == 1.0
+    assert ground_truth.score(gt, {1: yes, 2: no, 3: yes, 4: no})["image_all_correct"] == 1.0
     # the truth follows the presence threshold asked for
-    assert B.score(gt, {1: no, 2: no, 3: no, 4: no}, presence_min_pixels=600)[
+    assert ground_truth.score(gt, {1: no, 2: no, 3: no, 4: no}, presence_min_pixels=600)[
         "image_all_correct"] == 1.0
 
 
@@ -284,7 +300,8 @@ def test_scoring_counts_missing_and_error_frames_as_wrong():
 
 def test_replay_to_the_real_node_answers_every_frame_like_outcome_bag(work, processed, tmp_path):
     domain = random.randint(1, 200)
-    proc = nh.NodeProcess(["-p", f"model_path:={work / 'random.pt'}", "-p", "qos:=reliable"],
+    proc = nh.NodeProcess(["-p", f"model_path:={work / 'depth_band.pt'}", "-p",
+                           "qos:=reliable"],
                           domain, tmp_path / "node.log")
     client = nh.OutcomeClient(domain)
     replay = None

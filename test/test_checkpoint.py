@@ -15,6 +15,8 @@ from task_outcome_ros.checkpoint import CheckpointError
 from task_outcome_ros.labels import label_table
 from task_outcome_ros.model import DEFAULT_NORMALISATION, IN_CHANNELS, OutcomeFCN
 
+pytestmark = pytest.mark.unit
+
 ARGS = {"in_channels": IN_CHANNELS, "num_classes": 5, "base_width": 4, "levels": 2,
         "decoder_convs": 1}
 
@@ -191,7 +193,7 @@ def test_checkpoint_keeps_the_floor_fit_it_was_trained_on(tmp_path: Path) -> Non
     _save(new, input_size=(160, 120))
     _save(old, input_size=(160, 120))
     _rewrite(old, normalisation={k: v for k, v in DEFAULT_NORMALISATION.items()
-                                 if k != "floor_fit"})          # saved before stop 15
+                                 if k != "floor_fit"})          # saved by models up to 0.1.7
     assert checkpoint.load(new).normalisation["floor_fit"] == FLOOR_FIT
     assert checkpoint.load(old).normalisation["floor_fit"] == LEGACY_FLOOR_FIT
     # The segmenter's height channel follows: on a scene whose inner floor misleads fit

@@ -26,6 +26,8 @@ from training.config import (
 )
 from training.dataset import save_run_config
 
+pytestmark = pytest.mark.unit
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -125,7 +127,7 @@ def test_config_round_trips_through_json():
 
 
 def test_defaults_are_the_contract_scene_and_camera():
-    """CONTRACTS §1 and §4; every default config must also validate."""
+    """docs/interface.md §1 and §4; every default config must also validate."""
     s = SceneConfig()
     assert s.wall_height == 0.25
     assert s.container_inner_size == 1.0

@@ -45,6 +45,8 @@ from training.geometry import SAMPLE_GRID, geometric_outcome, object_measurement
 from training.render import draw_camera, read_pair, render, render_episode, scene_boxes
 from training.seeding import episode_rng
 
+pytestmark = pytest.mark.pipeline
+
 REPO = Path(__file__).resolve().parents[1]
 SEED = 7
 EPISODES = 40
@@ -167,7 +169,7 @@ def discovery_run(tmp_path_factory) -> Path:
 def test_discovery_finds_the_three_outcomes(discovery_run):
     report = load_json(discovery_run / "discovery.json")
     for key in ("n_episodes", "n_clusters", "cluster_names", "ari_vs_geometry", "noise_points"):
-        assert key in report, f"CONTRACTS §6 key {key} missing from discovery.json"
+        assert key in report, f"docs/interface.md §6 key {key} missing from discovery.json"
     assert report["n_episodes"] == 400
     assert report["n_clusters"] == 3
     sizes = report["cluster_names"]
@@ -177,7 +179,8 @@ def test_discovery_finds_the_three_outcomes(discovery_run):
     assert sum(sizes.values()) == report["n_objects"]
     assert report["ari_vs_geometry"] >= 0.95
     assert isinstance(report["noise_points"], int) and 0 <= report["noise_points"]
-    # CONTRACTS §2: ~55-60 % success, 30-35 % outside, ~10 % stuck (wide bounds: ~1000 objects)
+    # docs/interface.md §2: ~51-60 % success, 30-35 % outside, 10-16 % stuck (wide bounds:
+    # ~1000 objects)
     frac = {k: v / report["n_objects"] for k, v in sizes.items()}
     assert 0.45 <= frac["success"] <= 0.70, frac
     assert 0.20 <= frac["fell_outside"] <= 0.45, frac

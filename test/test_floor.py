@@ -24,6 +24,8 @@ from task_outcome_ros.model import (
     preprocess,
 )
 
+pytestmark = pytest.mark.unit
+
 # The normalisation of checkpoints from before the height channel: depth and validity only.
 TWO_CHANNEL_NORMALISATION = {k: v for k, v in DEFAULT_NORMALISATION.items()
                              if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
@@ -92,8 +94,8 @@ def test_preprocess_third_channel_is_scaled_height() -> None:
     assert preprocess(_tilted_scene(), (16, 12), TWO_CHANNEL_NORMALISATION).shape[0] == 2
 
 
-# A camera at the edge of the envelope (CONTRACTS §4): fx = fy = 590 px at 640 x 480 and the
-# principal point 8 px off the centre in both axes.
+# A camera at the edge of the envelope (docs/interface.md §4): fx = fy = 590 px at 640 x 480
+# and the principal point 8 px off the centre in both axes.
 EDGE_CAMERA = Intrinsics(640, 480, 590.0, 590.0, 319.5 + 8.0, 239.5 - 8.0)
 
 
@@ -134,8 +136,8 @@ def test_intrinsics_k_round_trips_through_camera_info_fields() -> None:
 
 def _container_floor_scene(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
     """A noisy floor seen at 42 deg from 1.8 m, half of it behind a raised inner floor 0.02 m
-    up (the container's, CONTRACTS §2) and its far rows out of range. Returns depth (1, h, w),
-    validity (1, h, w) and the true outer-floor mask."""
+    up (the container's, docs/interface.md §2) and its far rows out of range. Returns depth
+    (1, h, w), validity (1, h, w) and the true outer-floor mask."""
     h, w = 120, 160
     depth = _tilted_scene(h, w, camera_height=1.8, elevation_deg=42.0, box_height=0.0)
     raised = np.zeros((h, w), bool)
@@ -154,7 +156,7 @@ def test_floor_fit_is_not_pulled_towards_the_container_inner_floor() -> None:
     depth, valid, outer = _container_floor_scene()
     fixed = height_above_floor(depth, valid)[0].numpy()
     assert abs(np.median(fixed[outer])) < 0.0005
-    # Fit version 1 (checkpoints before stop 15) settles on a plane tilted through both floors.
+    # Fit version 1 (models up to 0.1.7) settles on a plane tilted through both floors.
     legacy = height_above_floor(depth, valid, version=LEGACY_FLOOR_FIT)[0].numpy()
     assert abs(np.median(legacy[outer])) > 0.003
 

@@ -17,6 +17,8 @@ from training.hard_cases import (
     rim_gap_bin_names,
 )
 
+pytestmark = pytest.mark.unit
+
 
 def _scene() -> np.ndarray:
     labels = np.zeros((60, 80), np.uint8)

@@ -35,6 +35,8 @@ from task_outcome_ros.model import (
     preprocess,
 )
 
+pytestmark = pytest.mark.unit
+
 ARGS = {"in_channels": IN_CHANNELS, "num_classes": 5, "base_width": 4, "levels": 3,
         "decoder_convs": 1}
 INPUT_SIZE = (160, 120)

@@ -18,6 +18,8 @@ import pytest
 
 pytest.importorskip("colcon_core", reason="colcon (colcon-core) is not installed")
 
+pytestmark = pytest.mark.install
+
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "task_outcome_ros"
 EXECUTABLES = ("outcome_node", "outcome_bag", "outcome_replay")

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from task_outcome_ros.labels import IGNORE, NUM_CLASSES, OUTCOME_IDS
 from training.losses import outcome_lovasz_loss
+
+pytestmark = pytest.mark.unit
 
 SUCCESS, STUCK = OUTCOME_IDS["success"], OUTCOME_IDS["stuck_on_rim"]
 

@@ -19,6 +19,8 @@ from task_outcome_ros.model import (
     resize_depth,
 )
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.mark.parametrize("h,w", [(48, 64), (33, 97), (37, 53), (16, 16)])
 def test_any_input_size_keeps_size(h: int, w: int) -> None:

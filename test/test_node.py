@@ -5,8 +5,9 @@ Two node processes serve the whole module (module-scoped fixtures):
 - ``session``: the shipped YAML plus a checkpoint whose head bias makes ``fell_outside`` win
   on every pixel, so the answer is known by construction (one object covering the image) and
   the WARN level, 3-D centroids and markers can be checked exactly;
-- ``random_session``: a plain random-init checkpoint (its labels depend on the depth values,
-  so decoding mistakes show up), in namespace /cam1 with qos:=reliable and no overlay.
+- ``band_session``: a depth-band checkpoint (``model_helpers``: success beyond 2 m,
+  fell_outside nearer), so its labels follow the depth values and a decoding mistake shows;
+  in namespace /cam1 with qos:=reliable and no overlay.
 
 Everything else asserts structure and consistency (sizes, headers, status fields agreeing with
 the labels received), which must hold for any model. Tests with the shipped checkpoint and
@@ -26,18 +27,23 @@ import pytest
 pytest.importorskip("rclpy", reason="ROS 2 rclpy is not installed")
 pytest.importorskip("torch", reason="torch is not installed")
 
+import cv2  # noqa: E402
 import node_helpers as nh  # noqa: E402
 import rcl_interfaces.srv as rcl_srv  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+from model_helpers import BAND_FAR, BAND_NEAR, BAND_SPLIT_M  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
 from task_outcome_ros import labels as L  # noqa: E402
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS  # noqa: E402
 
+pytestmark = pytest.mark.ros
+
 DOMAIN_ID = random.randint(1, 200)
 CONFIG = nh.REPO / "config" / "outcome_node.yaml"
 ALL_OUTPUTS = ("status", "labels", "overlay", "markers")
+BURST = 24  # 640 x 480 frames published back to back: ~1 ms each, the model takes ~10
 
 
 @pytest.fixture(scope="module")
@@ -60,12 +66,12 @@ def session(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def random_session(tmp_path_factory):
-    """A second node: plain random-init model (labels depend on depth), namespace /cam1,
+def band_session(tmp_path_factory):
+    """A second node: the depth-band model (labels follow depth), namespace /cam1,
     qos:=reliable, publish_overlay:=false."""
-    tmp = tmp_path_factory.mktemp("outcome_node_random")
+    tmp = tmp_path_factory.mktemp("outcome_node_band")
     domain = DOMAIN_ID % 200 + 1
-    ckpt = nh.make_checkpoint(tmp / "random.pt", seed=1)
+    ckpt = nh.make_depth_band_checkpoint(tmp / "depth_band.pt")
     proc = nh.NodeProcess(["-r", "__ns:=/cam1", "-p", f"model_path:={ckpt}", "-p",
                            "qos:=reliable", "-p", "publish_overlay:=false"],
                           domain, tmp / "node.log")
@@ -211,8 +217,8 @@ def test_float_depth_640x480(session):
     assert nh.status_values(reply.status)["fell_outside.objects"] == "1"
 
 
-def test_inf_and_negative_depth_are_invalid(random_session):
-    client, _ = random_session
+def test_inf_and_negative_depth_are_invalid(band_session):
+    client, _ = band_session
     base = scene(96, 128)
     weird = base.copy()
     weird[40:50, 10:40] = np.inf
@@ -243,19 +249,28 @@ VARIANTS = [
 @pytest.mark.parametrize("encoding,bigendian,pad,size", VARIANTS,
                          ids=[f"{e}-{'be' if b else 'le'}-pad{p}-{s[1]}x{s[0]}"
                               for e, b, p, s in VARIANTS])
-def test_encodings_endianness_padding_sizes(random_session, encoding, bigendian, pad, size):
-    """Every variant keeps size and header and gives the same labels as its plain LE twin
-    (the random-init model of this node labels byte-swapped or misaligned depth differently).
-    """
-    client, _ = random_session
+def test_encodings_endianness_padding_sizes(band_session, encoding, bigendian, pad, size):
+    """Every variant keeps size and header and gives the labels of the depth it encodes: the
+    depth-band model's fell_outside on the near box, success on the far floor, and the same
+    labels as its plain little-endian twin."""
+    client, _ = band_session
     depth = scene(*size)
     plain = nh.depth_msg(depth, encoding, stamp=client.next_stamp(), frame_id="plain")
     msg = nh.depth_msg(depth, encoding, stamp=client.next_stamp(), frame_id="variant_frame",
-                    bigendian=bigendian, pad=pad)
+                       bigendian=bigendian, pad=pad)
     assert msg.step == size[1] * (4 if encoding == "32FC1" else 2) + pad
     ref = check_reply(plain, client.request(plain, ("status", "labels")))
     got = check_reply(msg, client.request(msg, ("status", "labels")))
     np.testing.assert_array_equal(got, ref)
+    valid = np.isfinite(depth)
+    far = valid & (depth > BAND_SPLIT_M)
+    # Away from the box's edges (the network works at a quarter of the size).
+    interior = cv2.erode(far.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    assert (got[interior] == BAND_FAR).all()
+    near = cv2.erode((valid & ~far).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    assert (got[near] == BAND_NEAR).all()
+    if size[0] * size[1] >= 64 * 64:  # the scene has a box big enough to be its own class
+        assert {BAND_FAR, BAND_NEAR} <= set(np.unique(got))
 
 
 @pytest.mark.parametrize("encoding,fill", [("32FC1", np.nan), ("16UC1", 0.0),
@@ -362,25 +377,30 @@ def test_camera_info_of_another_size_is_ignored_and_reported(session):
 
 
 def test_burst_keeps_only_the_newest_and_counts_drops(session):
+    """A burst faster than the model: frames that wait are overwritten (counted), so only a
+    few are processed and the last is answered. A node that queued every frame would answer
+    them all and count no drop."""
     client, proc = session
     before = client.request(nh.depth_msg(scene(24, 32), stamp=client.next_stamp()))
     dropped_before = int(nh.status_values(before.status)["dropped_frames"])
-    burst = [nh.depth_msg(scene(), stamp=client.next_stamp(), frame_id="burst") for _ in range(12)]
+    burst = [nh.depth_msg(scene(), stamp=client.next_stamp(), frame_id="burst")
+             for _ in range(BURST)]
     for msg in burst[:-1]:
         client.image_pub.publish(msg)
     last = client.request(burst[-1], ("status", "labels"), resend_every=5.0)
     check_reply(burst[-1], last)
+    client.spin_until(lambda: False, 1.0)  # late answers to earlier frames, if any
     processed = sum(nh.header_key(m.header) in client.replies for m in burst)
     dropped = int(nh.status_values(last.status)["dropped_frames"]) - dropped_before
-    assert dropped >= 0 and processed >= 1
-    # Each frame is processed, overwritten (dropped) or lost in transport; never queued.
-    assert processed + dropped <= len(burst)
+    assert dropped >= 1, "no frame was overwritten: the node queued the burst"
+    assert processed <= BURST - dropped  # each frame processed, overwritten or lost, once
+    assert processed < BURST // 2, f"{processed} of {BURST} burst frames were processed"
     assert proc.alive()
 
 
-def test_namespace_reliable_qos_and_no_overlay(random_session):
+def test_namespace_reliable_qos_and_no_overlay(band_session):
     """Relative topic names follow the namespace; qos:=reliable and publish_overlay:=false."""
-    client, proc = random_session
+    client, proc = band_session
     assert client.image_pub.topic_name == "/cam1/depth/image_raw"
     msgs = [nh.depth_msg(scene(60, 80), "16UC1", stamp=client.next_stamp()) for _ in range(2)]
     for msg in msgs:  # reliable input: no resend needed, even for the first frame
@@ -475,9 +495,45 @@ def test_package_imports_without_rclpy():
     assert result.stdout.startswith("ok")
 
 
-def test_shutdown_is_clean(session, random_session):
+# What a robot does not install: the simulator, the clustering, the plots, the training code.
+TRAINING_ONLY = ("pybullet", "sklearn", "matplotlib", "training")
+
+
+def test_node_starts_and_answers_without_training_dependencies(tmp_path):
+    """The node imports and answers a frame in a process where pybullet, scikit-learn,
+    matplotlib and ``training`` cannot be imported (any import of them raises)."""
+    code = ("import sys\n"
+            f"for name in {TRAINING_ONLY!r}:\n"
+            "    sys.modules[name] = None\n"
+            "from task_outcome_ros.node import main\n"
+            "sys.exit(main(sys.argv))\n")
+    domain = (DOMAIN_ID + 50) % 200 + 1
+    ckpt = nh.make_checkpoint(tmp_path / "success_everywhere.pt", favour=L.SUCCESS)
+    proc = nh.NodeProcess(["-p", f"model_path:={ckpt}"], domain, tmp_path / "node.log",
+                          command=[sys.executable, "-c", code, "outcome_node"])
+    client = nh.OutcomeClient(domain)
+    try:
+        client.wait_for_node(proc)
+        msg = nh.depth_msg(scene(60, 80), stamp=client.next_stamp())
+        reply = client.request(msg, ("status", "labels"), resend_every=0.5)
+        check_reply(msg, reply)
+        assert reply.status.status[0].message == "success"
+        modules = subprocess.run(
+            [sys.executable, "-c", "import sys; import task_outcome_ros.node, "
+             "task_outcome_ros.bag_tools, task_outcome_ros.replay, task_outcome_ros.live_bag; "
+             f"print(sorted(m for m in {TRAINING_ONLY!r} if m in sys.modules))"],
+            cwd=nh.REPO, env=nh.ros_env(), capture_output=True, text=True, timeout=120)
+        assert modules.returncode == 0, modules.stderr
+        assert modules.stdout.strip() == "[]", modules.stdout  # nothing pulled in indirectly
+    finally:
+        client.close()
+        assert proc.stop() == 0
+    assert "Traceback" not in proc.log(), proc.log()
+
+
+def test_shutdown_is_clean(session, band_session):
     """Last: SIGINT ends both nodes with exit code 0 and no traceback."""
-    for _, proc in (session, random_session):
+    for _, proc in (session, band_session):
         assert proc.alive()
         assert proc.stop() == 0
         assert "Traceback" not in proc.log(), proc.log()

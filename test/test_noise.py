@@ -24,6 +24,8 @@ from training.noise import (
     speckle_holes,
 )
 
+pytestmark = pytest.mark.unit
+
 REPO = Path(__file__).resolve().parents[1]
 H, W = 480, 640
 FX = 570.0

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from model_helpers import make_checkpoint
 
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from task_outcome_ros.labels import (
@@ -23,7 +24,11 @@ from task_outcome_ros.labels import (
 )
 from task_outcome_ros.model import DEFAULT_NORMALISATION, check_normalisation
 from training.config import ConfigError, TrainConfig
-from training.evaluate import confusion
+from training.dataset import load_manifest
+from training.evaluate import confusion, evaluate
+from training.hard_cases import episode_hard_cases
+
+pytestmark = pytest.mark.pipeline
 
 
 def test_presence_scores_on_hand_made_presence():
@@ -173,6 +178,27 @@ def small_run(tmp_path_factory) -> Path:
     return out
 
 
+def test_evaluation_of_a_known_model_gives_the_scores_the_truth_implies(small_run, tmp_path):
+    """A model that says success on every valid pixel: its presence precision and recall per
+    outcome follow from the manifest's truth alone, so evaluate's arithmetic is checked."""
+    ckpt = make_checkpoint(tmp_path / "success_everywhere.pt", favour=SUCCESS)
+    report = evaluate(ckpt, small_run, "all", tmp_path / "eval", backend="torch",
+                      progress=False)
+    truth = [im["present"] for im in load_manifest(small_run)["images"]]
+    assert report["n_images"] == len(truth) == 40
+    with_success = sum(p["success"] for p in truth)
+    assert 0 < with_success < len(truth)  # the seed gives images without a success object
+    assert report["success"]["presence_recall"] == 1.0
+    assert report["success"]["presence_precision"] == pytest.approx(with_success / len(truth))
+    for name in ("fell_outside", "stuck_on_rim"):
+        support = sum(p[name] for p in truth)
+        assert report[name]["support"] == support and report[name]["false_positives"] == 0
+        assert report[name]["presence_recall"] == (0.0 if support else 1.0)
+    only_success = sum(p == {"success": True, "fell_outside": False, "stuck_on_rim": False}
+                       for p in truth)
+    assert report["image_all_correct"] == pytest.approx(only_success / len(truth))
+
+
 def test_short_real_training_improves_the_loss_and_evaluates(small_run):
     r = _cli("train", "--out", str(small_run), "--epochs", "3", "--batch-size", "8",
              "--lr", "0.005", "--device", "cpu")
@@ -193,14 +219,15 @@ def test_short_real_training_improves_the_loss_and_evaluates(small_run):
     report = json.loads((small_run / "eval" / "eval.json").read_text())
     for key in ("n_images", "image_all_correct", "pixel_miou", "iou", "presence_min_pixels"):
         assert key in report
-    for name in ("success", "fell_outside", "stuck_on_rim"):
-        assert 0.0 <= report[name]["presence_precision"] <= 1.0
-        assert 0.0 <= report[name]["presence_recall"] <= 1.0
     assert report["n_images"] == 2   # 5 % of 40 episodes
+    assert report["image_all_correct"] == pytest.approx(
+        1 - len(report["mistakes"]) / report["n_images"])
     assert report["fragment_max_pixels"] == FRAGMENT_MAX_PIXELS
     hard = report["hard_cases"]    # tags come from the run's own simulated final states
     assert set(hard["images"]) == {"near_rim", "across_wall"}
-    assert 0 <= hard["untagged_images"] <= report["n_images"]
+    val = [im["episode"] for im in load_manifest(small_run)["images"] if im["split"] == "val"]
+    cases = episode_hard_cases(small_run, set(val))
+    assert hard["untagged_images"] == sum(not cases[e].tags for e in val)
     assert hard["mistakes"]["untagged"] <= len(report["mistakes"])
     assert sum(hard["mistakes"].values()) >= len(report["mistakes"])  # each one counted
     assert sum(e["images"] for e in hard["by_rim_gap"]) == report["n_images"]

@@ -3,7 +3,8 @@
 simulate -> discover -> render (+ manifest, previews) -> train -> evaluate; ``dataset`` runs
 the first three, ``run`` runs everything. Each stage reads the previous stage's files in the
 run folder (``--out``) and writes its own; re-running a stage resumes it. ``export-bag`` writes
-a run's images as a rosbag2 bag for the ROS side (outcome_bag, outcome_replay).
+a run's images as a rosbag2 bag for the ROS side (outcome_bag, outcome_replay); ``demo``
+plays a small fresh bag through the live node and scores it (``make demo``).
 """
 
 from __future__ import annotations
@@ -232,6 +233,12 @@ def cmd_export_bag(args) -> None:
     cmd_export_bag(args)
 
 
+def cmd_demo(args) -> int:
+    from training.demo import demo_main
+
+    return demo_main(args)
+
+
 def cmd_run(args) -> None:
     """Everything: dataset, train (and ship), evaluate on the validation split."""
     cmd_dataset(args)
@@ -248,6 +255,7 @@ COMMANDS = {
     "evaluate": (cmd_evaluate, "evaluate a checkpoint with the paper's image-level metric"),
     "run": (cmd_run, "dataset + train + evaluate"),
     "export-bag": (cmd_export_bag, "write a run's images as a rosbag2 bag (+ ground truth)"),
+    "demo": (cmd_demo, "a small simulated bag through the live outcome_node, scored"),
 }
 
 
@@ -262,6 +270,11 @@ def build_parser() -> argparse.ArgumentParser:
 
             add_args(p)
             continue
+        if name == "demo":
+            from training.demo import add_demo_args
+
+            add_demo_args(p)
+            continue
         add_dataset_args(p)
         if name in ("train", "run"):
             add_train_args(p)
@@ -273,14 +286,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        COMMANDS[args.stage][0](args)
+        code = COMMANDS[args.stage][0](args)
     except (ConfigError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted: run the same command again to resume", file=sys.stderr)
         return 130
-    return 0
+    return int(code or 0)
 
 
 if __name__ == "__main__":

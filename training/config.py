@@ -1,4 +1,4 @@
-"""Frozen, validated configs, one per stage. Defaults are the nominal scene of CONTRACTS §1/§4.
+"""Frozen, validated configs, one per stage. Defaults: the nominal scene, docs/interface.md §1, §4.
 
 Every run saves the resolved configs (``config.json`` in the run folder) and every checkpoint
 embeds them, so a run can be reproduced from its own files.
@@ -43,7 +43,7 @@ def _check_interval(owner: str, name: str, interval: tuple[float, float], lo: fl
 
 @dataclass(frozen=True)
 class SceneConfig:
-    """The simulated place task (CONTRACTS §1) and its physics domain randomisation."""
+    """The simulated place task (docs/interface.md §1) and its physics domain randomisation."""
 
     container_inner_size: float = 1.0     # m, inner footprint side
     wall_thickness: float = 0.02          # m
@@ -100,7 +100,7 @@ class SceneConfig:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """The envelope camera draws come from (CONTRACTS §4). Ranges may only shrink it."""
+    """The envelope camera draws come from (docs/interface.md §4). Ranges may only shrink it."""
 
     width: int = 640
     height: int = 480
@@ -279,10 +279,10 @@ class TrainConfig:
     near_rim_weight: float = 2.5
     augment: bool = True
     # Re-drawn axial noise per training image: U(0, aug_noise) x the sensor's own noise at the
-    # working size (train.SENSOR_NOISE_PER_Z2). Until stop 12 it was ~7x the sensor's.
+    # working size (train.SENSOR_NOISE_PER_Z2). Before model 0.1.5 it was ~7x the sensor's.
     aug_noise: float = 1.0
     # Weight of the per-image outcome IoU (Lovász-softmax) loss added to cross-entropy
-    # (losses.py); 0 = cross-entropy alone. 0.5 (stop 13): fewer split objects; image
+    # (losses.py); 0 = cross-entropy alone. 0.5 (model 0.1.6): fewer split objects; image
     # all-correct 0.982 -> 0.986 (validation), 0.980 -> 0.982 (seed-1), 0.980 -> 0.987 on the
     # first 1,000 training images, for ~6 % more time per step (bench/train_step.py).
     lovasz_weight: float = 0.5
@@ -290,8 +290,9 @@ class TrainConfig:
     # on the robot) instead of the envelope's nominal one, whose focal length can be 6 % off:
     # 3 mm of height error at the rim on average, up to 14 mm, as much as a near-rim box's
     # whole margin. Off: the nominal camera, plus a +-4 % whole-scene distance change in
-    # augmentation. On the quick profile (stop 14): 0.978 / 0.972 (validation / seed-1) with
-    # camera_info, 0.976 / 0.967 without, against 0.976 / 0.967 for a nominal-camera model.
+    # augmentation. On the quick profile (model 0.1.7's recipe): 0.978 / 0.972 (validation /
+    # seed-1) with camera_info, 0.976 / 0.967 without, against 0.976 / 0.967 for a nominal-camera
+    # model.
     camera_intrinsics: bool = True
     device: str = "auto"                  # cpu | cuda | auto
     # auto: fp16 on CUDA, bf16 on a CPU with native bf16 (AVX512-BF16/AMX), else fp32

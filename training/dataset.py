@@ -1,7 +1,8 @@
 """Stage 4: the dataset on disk (manifest + split) and its torch view for training.
 
 On disk (``<run>/``): ``images/NNNNNN_depth.png`` (16-bit, millimetres, 0 = invalid, like a
-Kinect's 16UC1) and ``images/NNNNNN_labels.png`` (ids of CONTRACTS §3, 255 = no depth), plus
+Kinect's 16UC1) and ``images/NNNNNN_labels.png`` (ids of docs/interface.md §3, 255 = no depth),
+plus
 ``manifest.json``: per image its seeds, camera, per-object outcomes, the outcomes present by
 the presence rule and the split (95/5 by episode).
 

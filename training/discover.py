@@ -14,8 +14,8 @@ stuck objects. Two measurements in the container frame do have natural gaps:
   sit exactly at 0 (a dense spike); any part outside costs at least one grid point of
   ``geometry.box_sample_points`` (0.1 %), and objects entirely outside sit at 1. The offset
   sits two decades below that one grid point, so a single point outside lands 0.4 from the
-  spike, more than 3 x eps: a real gap between "entirely inside" and "sticks out". (Up to
-  stop 15 the offset was 1e-3, which put one point outside only 0.10 from the spike, inside
+  spike, more than 3 x eps: a real gap between "entirely inside" and "sticks out". (Before
+  model 0.2.0 the offset was 1e-3, which put one point outside only 0.10 from the spike, inside
   eps 0.12: boxes sticking out by up to 18 mm chained into the success cluster, 16 of 24,969
   objects at 10,000 episodes, and the near-rim labels the network learns from were noisy.)
 

@@ -2,7 +2,7 @@
 
 Every image goes through ``OutcomeSegmenter.segment`` at full resolution (the node's code
 path), and the presence rule of labels.py decides which outcomes are present in the predicted
-and in the true label image. Writes ``eval.json`` (CONTRACTS §6), a confusion matrix and a
+and in the true label image. Writes ``eval.json`` (docs/interface.md §6), a confusion matrix and a
 picture of examples, mistakes first.
 """
 

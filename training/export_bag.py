@@ -18,9 +18,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from task_outcome_ros import bag_tools as B
+from task_outcome_ros import bag_io as B
 from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.cli_args import positive_float, positive_int
+from task_outcome_ros.ground_truth import GROUND_TRUTH_FILE
 from task_outcome_ros.labels import PRESENCE_MIN_PIXELS
 from training.dataset import load_manifest
 from training.render import image_paths, read_pair
@@ -108,7 +109,7 @@ def export_bag(run_dir: Path, bag: Path | None = None, *, split: str = "val",
              "storage": storage, "rate_hz": rate_hz, "epoch_ns": EPOCH_NS,
              "presence_min_pixels": PRESENCE_MIN_PIXELS, "n_frames": len(frames),
              "frames": frames}
-    (bag / B.GROUND_TRUTH_FILE).write_text(json.dumps(truth, indent=1) + "\n")
+    (bag / GROUND_TRUTH_FILE).write_text(json.dumps(truth, indent=1) + "\n")
     return truth
 
 
@@ -137,6 +138,6 @@ def cmd_export_bag(args: argparse.Namespace) -> None:
                        with_labels=args.with_labels, overwrite=args.overwrite)
     print(f"export-bag: {truth['n_frames']} frames ({args.split}, {args.encoding}, "
           f"{args.rate:g} Hz, {args.storage}) on {truth['image_topic']} and "
-          f"{truth['camera_info_topic']} -> {truth['bag']} (+ {B.GROUND_TRUTH_FILE})")
+          f"{truth['camera_info_topic']} -> {truth['bag']} (+ {GROUND_TRUTH_FILE})")
 
 

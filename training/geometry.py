@@ -79,9 +79,9 @@ def outer_footprint_ratio(scene: SceneConfig) -> float:
 
 
 def geometric_outcome(m: dict[str, float], scene: SceneConfig) -> str:
-    """The yardstick of CONTRACTS §2 (never the label source): success if the centre of mass is
-    inside the inner footprint and the top below the rim; fell_outside if the centre of mass is
-    outside the outer footprint; otherwise stuck_on_rim."""
+    """The yardstick of docs/interface.md §2 (never the label source): success if the centre of
+    mass is inside the inner footprint and the top below the rim; fell_outside if the centre of
+    mass is outside the outer footprint; otherwise stuck_on_rim."""
     if m["com_offset"] < 1.0 and m["top_above_rim"] <= 0.0:
         return "success"
     if m["com_offset"] > outer_footprint_ratio(scene):

@@ -1,7 +1,7 @@
 """Why an image is hard: geometric tags from the simulated final states, for the evaluation.
 
 The outcome of an object is decided by geometry the depth camera sees only through its noise
-(CONTRACTS §2): a box whose top is 3 mm above the rim is stuck_on_rim, 3 mm below it is a
+(docs/interface.md §2): a box whose top is 3 mm above the rim is stuck_on_rim, 3 mm below it is a
 success. At 1.6-2.4 m the Kinect-like sensor's depth noise is about 3-8 mm per pixel and its
 depth steps (1/8 px of disparity) 8-17 mm (training/noise.py), so those images sit at the
 limit of what the sensor can tell, whatever the network. Evaluation
@@ -14,7 +14,7 @@ Tags (an image may have several):
   its highest corner within ``NEAR_RIM_M`` of the rim top (success vs stuck_on_rim);
 - ``across_wall``: an object lies partly over the container's footprint and partly beyond
   it, i.e. across the wall (fell_outside vs stuck_on_rim: which cluster such a box joins is
-  where discovery and the geometric rule of CONTRACTS §2 disagree).
+  where discovery and the geometric rule of docs/interface.md §2 disagree).
 
 Besides the tags, each image gets its *rim gap*: the smallest |top - rim| over the objects
 above the container's footprint (None without one). Evaluation reports all-correct per

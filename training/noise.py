@@ -1,6 +1,6 @@
 """Kinect-v1 structured-light depth noise: clean rendered depth in, sensor-like depth out.
 
-The model runs at full resolution, in this order (CONTRACTS §4):
+The model runs at full resolution, in this order (docs/interface.md §4):
 
 1. **Lateral edge jitter** (Handa et al. 2014, ICL-NUIM; lateral noise as in Nguyen, Izadi &
    Lovell 2012): depth, labels and incidence are resampled at pixel coordinates shifted by

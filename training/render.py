@@ -62,7 +62,7 @@ def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 def draw_camera(cam: CameraConfig, scene: SceneConfig, floor_z: float,
                 rng: np.random.Generator) -> tuple[Camera, dict]:
-    """A camera from the envelope (CONTRACTS §4); returns it and the draws, for the manifest."""
+    """A camera from the envelope (docs/interface.md §4); returns it and its draws (manifest)."""
     f = float(rng.uniform(*cam.focal_px))
     cx = (cam.width - 1) / 2 + float(rng.uniform(-cam.principal_offset_px,
                                                  cam.principal_offset_px))

@@ -1,5 +1,5 @@
 """Stage 1: drop 1-4 random boxes into an open container with pybullet and record where
-each one comes to rest (CONTRACTS §1).
+each one comes to rest (docs/interface.md §1).
 
 One pybullet world lives per worker process and is reused between episodes: the floor and the
 container are moved and the objects removed and respawned, which is far cheaper than building a

@@ -112,7 +112,7 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
             intrinsics[:, 3] += dy / depth.shape[1]
     # Whole-scene distance change (+-4 %) and re-drawn axial noise growing with z^2: up to
     # the sensor's own noise at this working size (0 to 1x per image by default), on top of
-    # the noise already in the image. (Until stop 12 this was 0.003 z^2 per working pixel,
+    # the noise already in the image. (Before model 0.1.5 this was 0.003 z^2 per working pixel,
     # about 7x the real noise at 160 x 120, which buried the millimetres that tell stuck from
     # success.)
     scale = 1.0 + 0.08 * (torch.rand(n, 1, 1, generator=gen) - 0.5)
