@@ -2,8 +2,10 @@
 
     python bench/dataset.py                      # the default 10,000-episode run (~5 min)
     python bench/dataset.py --episodes 2000 --seeds 5   # discovery stability over seeds
+    python bench/dataset.py --scene tote --seeds 5 --seed-episodes 1500 --seeds-only
 
-Writes the ``dataset`` (and ``discovery_seeds``) sections of bench/results.json.
+Writes the ``dataset`` (and ``discovery_seeds``) sections of bench/results.json; with
+``--scene`` other than default, ``dataset.<scene>`` and ``discovery_seeds.<scene>``.
 """
 
 from __future__ import annotations
@@ -22,9 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import record  # noqa: E402
 
 
-def run_dataset(out: Path, episodes: int, seed: int, workers: int) -> dict:
+def run_dataset(out: Path, episodes: int, seed: int, workers: int, scene: str) -> dict:
     cmd = [sys.executable, "-m", "training", "dataset", "--out", str(out), "--episodes",
-           str(episodes), "--seed", str(seed), "--workers", str(workers)]
+           str(episodes), "--seed", str(seed), "--workers", str(workers), "--scene", scene]
     start = time.perf_counter()
     subprocess.run(cmd, check=True)
     wall = time.perf_counter() - start
@@ -69,29 +71,33 @@ def main() -> None:
                         help="skip the 10,000-episode run; only the discovery seed check")
     parser.add_argument("--out", type=Path, default=None,
                         help="run folder, wiped first (default: runs/bench_dataset)")
+    parser.add_argument("--scene", default="default", help="scene spec (default: default)")
     args = parser.parse_args()
+    suffix = "" if args.scene == "default" else f".{Path(args.scene).stem}"
     command = "python bench/dataset.py " + " ".join(sys.argv[1:])
     out = args.out or Path("runs/bench_dataset")  # never runs/default: it is wiped first
     if not args.seeds_only:
         if out.exists():
             shutil.rmtree(out)  # resuming an earlier run would make the timing meaningless
-        data = run_dataset(out, args.episodes, 0, args.workers)
+        data = run_dataset(out, args.episodes, 0, args.workers, args.scene)
         data.update(episodes=args.episodes, workers=args.workers, out=str(out),
                     images_mb=dataset_disk_mb(out), memory=memory_slope())
-        record("dataset", data, command)
+        record("dataset" + suffix, data, command)
     if args.seeds:
         per_seed = []
         for seed in range(1, args.seeds + 1):
             with tempfile.TemporaryDirectory() as tmp:
                 cmd = [sys.executable, "-m", "training", "simulate", "--out", tmp,
-                       "--episodes", str(args.seed_episodes), "--seed", str(seed)]
+                       "--episodes", str(args.seed_episodes), "--seed", str(seed),
+                       "--scene", args.scene]
                 subprocess.run(cmd, check=True, stderr=subprocess.DEVNULL)
                 subprocess.run([*cmd[:3], "discover", "--out", tmp], check=True)
                 d = json.loads((Path(tmp) / "discovery.json").read_text())
             per_seed.append({"seed": seed, "n_clusters": d["n_clusters"],
                              "ari_vs_geometry": d["ari_vs_geometry"],
-                             "cluster_names": d["cluster_names"]})
-        record("discovery_seeds", {"episodes": args.seed_episodes, "runs": per_seed,
+                             "cluster_names": d["cluster_names"],
+                             "outcome_fractions": d["outcome_fractions"]})
+        record("discovery_seeds" + suffix, {"episodes": args.seed_episodes, "runs": per_seed,
                                    "all_three_clusters": all(r["n_clusters"] == 3
                                                              for r in per_seed)}, command)
 

@@ -234,7 +234,8 @@ def build_offline_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None,
                    help="output bag folder (default: <bag>_outcome)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
-    p.add_argument("--model", default=None, help="checkpoint or ONNX file (default: shipped)")
+    p.add_argument("--model", default=None,
+                   help="a shipped model's name or a checkpoint file (default: default)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu")
     p.add_argument("--backend", choices=("auto", "torch", "onnx"), default="auto")
     p.add_argument("--threads", type=positive_int, default=None, help="inference threads")

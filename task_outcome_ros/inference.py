@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import importlib.resources
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -23,10 +23,12 @@ from torch import nn
 from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.checkpoint import CheckpointError, LoadedCheckpoint, load, resolve_device
 from task_outcome_ros.depth import sanitize_depth
+from task_outcome_ros.envelope import Envelope, FrameStats, check, frame_stats
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS, absorb_fragments, fragment_threshold
 from task_outcome_ros.labels import (
     BACKGROUND,
     CLASS_NAMES,
+    CONTAINER,
     OUTCOME_IDS,
     OUTCOME_NAMES,
     PRESENCE_MIN_PIXELS,
@@ -68,15 +70,55 @@ class OutcomeResult:
     pixel_counts: dict[str, int]
     objects: dict[str, list[DetectedObject]]  # components >= the presence threshold
     inference_ms: float
+    stats: FrameStats | None = None     # what the envelope check looks at
+    outside_envelope: list[str] = field(default_factory=list)  # why; empty: inside
+    envelope_checked: bool = False      # False: the checkpoint records no training envelope
 
 
-def default_model_path() -> Path:
-    """The checkpoint shipped inside the package (pip, editable and colcon installs)."""
+def models_dir() -> Path:
+    """Where the shipped checkpoints live inside the package (pip, editable, colcon)."""
     try:
         root = Path(str(importlib.resources.files("task_outcome_ros")))
     except (ModuleNotFoundError, TypeError):
         root = Path(__file__).resolve().parent
-    return root / "models" / MODEL_FILE
+    return root / "models"
+
+
+def default_model_path() -> Path:
+    """The checkpoint of the default task shipped inside the package."""
+    return models_dir() / MODEL_FILE
+
+
+def shipped_model_file(task: str) -> str:
+    """File name of the model shipped for ``task``: the default task's keeps its old name."""
+    return MODEL_FILE if task == "default" else f"outcome_fcn_{task}.pt"
+
+
+def shipped_models() -> list[str]:
+    """Names of the shipped models present in this installation (``default``, ``tote``...)."""
+    names = [p.stem.removeprefix("outcome_fcn_") for p in models_dir().glob("outcome_fcn_*.pt")]
+    return sorted((["default"] if default_model_path().is_file() else []) + names)
+
+
+def resolve_model_path(model: str | Path | None) -> Path:
+    """A shipped model's name, a checkpoint path, or None (the default task's model)."""
+    if model is None or str(model) in ("", "default"):
+        path = default_model_path()
+        if not path.is_file():
+            raise CheckpointError(f"no trained model at the default path {path}: "
+                                  f"{TRAIN_HINT}")
+        return path
+    text = str(model)
+    path = Path(text)
+    if path.suffix or "/" in text or path.exists():
+        return path  # a file: load() names it if it is missing or not a checkpoint
+    shipped = models_dir() / shipped_model_file(text)
+    if not shipped.is_file():
+        raise CheckpointError(f"no shipped model named {text!r} (shipped: "
+                              f"{', '.join(shipped_models()) or 'none'}); pass a checkpoint "
+                              "path, or train one: python -m training run --scene "
+                              f"{text} --ship")
+    return shipped
 
 
 @torch.inference_mode()
@@ -163,13 +205,7 @@ class OutcomeSegmenter:
                                  ("fragment_max_pixels", fragment_max_pixels, 0)):
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
-        if model_path is None:
-            path = default_model_path()
-            if not path.is_file():
-                raise CheckpointError(f"no trained model at the default path {path}: "
-                                      f"{TRAIN_HINT}")
-        else:
-            path = Path(model_path)
+        path = resolve_model_path(model_path)
         if num_threads is not None:
             torch.set_num_threads(int(num_threads))
         self.device = resolve_device(device)
@@ -177,6 +213,9 @@ class OutcomeSegmenter:
         self.model = self.checkpoint.model
         self.input_size = self.checkpoint.input_size
         self.normalisation = self.checkpoint.normalisation
+        # What it was trained for (None for a checkpoint without a dataset config: no check).
+        self.envelope = Envelope.from_dataset_config(
+            self.checkpoint.train_config.get("dataset") or {})
         self.presence_min_pixels = presence_min_pixels
         self.fragment_max_pixels = fragment_max_pixels
         self._session = None
@@ -256,11 +295,32 @@ class OutcomeSegmenter:
             raise ValueError(f"intrinsics are for a {intrinsics.width} x {intrinsics.height} "
                              f"image, the depth image is {depth.shape[1]} x {depth.shape[0]}")
         small = None  # an all-invalid frame: nothing seen, nothing present (a defined answer)
+        x = None
         if np.isfinite(depth).any():
-            small = self._predict_small(self.prepare(depth, intrinsics))
+            x = self.prepare(depth, intrinsics)
+            small = self._predict_small(x)
         result = self.postprocess(small, depth)
+        result.stats = self._frame_stats(x, small, depth)
+        result.outside_envelope = check(self.envelope, result.stats, intrinsics)
+        result.envelope_checked = self.envelope is not None
         result.inference_ms = (time.perf_counter() - t0) * 1e3
         return result
+
+    def _frame_stats(self, x: np.ndarray | None, small: np.ndarray | None,
+                     depth: np.ndarray) -> FrameStats:
+        """The envelope check's inputs, from the working-size input and labels (cheap)."""
+        if x is None or small is None:
+            return FrameStats(0.0, None, None, 0.0)
+        norm = self.normalisation
+        valid = x[1] > 1e-6
+        metres = np.where(valid, x[0] * norm["scale_m"] + norm["offset_m"], np.nan)
+        heights = None
+        if "height_scale_m" in norm:
+            heights = np.where(valid, x[2] * norm["height_scale_m"], np.nan)
+        stats = frame_stats(metres, small, heights, CONTAINER)
+        # The valid share of the full-resolution frame, not of the working size.
+        return FrameStats(float(np.isfinite(depth).mean()), stats.median_depth_m,
+                          stats.support_fraction, stats.fixture_fraction)
 
     def prepare(self, depth: np.ndarray, intrinsics: Intrinsics | None = None) -> np.ndarray:
         """Sanitised depth (NaN invalid) -> the network's (C, h, w) input: everything

@@ -43,6 +43,7 @@ from task_outcome_ros import labels as L
 from task_outcome_ros import outcome_report as R
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from task_outcome_ros.frames import NO_CAMERA_INFO_NOTE, process_frame
+from task_outcome_ros.transport import TransportMonitor
 
 NODE_NAME = "outcome_node"
 STATUS_NAME = R.STATUS_NAME
@@ -50,6 +51,7 @@ QOS_CHOICES = ("sensor_data", "reliable")
 DEVICE_CHOICES = ("cpu", "cuda", "auto")
 BACKEND_CHOICES = ("auto", "torch", "onnx")
 WARN_THROTTLE_S = 2.0
+ENVELOPE_THROTTLE_S = 10.0
 MARKER_DIAMETER_M = 0.1
 
 
@@ -68,8 +70,9 @@ class _ParamSpec:
 
 PARAMS: dict[str, _ParamSpec] = {
     "model_path": _ParamSpec(
-        "", "Checkpoint (.pt) or ONNX model file; '' = the checkpoint shipped in the package.",
-        True, "a readable checkpoint file, or '' for the shipped model"),
+        "", "A shipped model's name (default, tote, ...) or a checkpoint (.pt) file; '' = the "
+            "default task's shipped model. Its ONNX export beside it is used by backend auto.",
+        True, "a shipped model's name, a readable checkpoint file, or '' for the default"),
     "device": _ParamSpec(
         "cpu", "Torch device: 'cpu', 'cuda' or 'auto' (cuda when available).",
         True, f"one of {', '.join(DEVICE_CHOICES)}"),
@@ -142,6 +145,7 @@ class OutcomeNode(Node):
         self._pending: tuple[Image, float] | None = None  # newest unprocessed (msg, t_received)
         self._dropped = 0
         self._camera_info: CameraInfo | None = None
+        self._transport = TransportMonitor()  # callbacks only: the executor's one thread
         self._stop = False
 
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -187,12 +191,15 @@ class OutcomeNode(Node):
         # Imported here (after parameter checks) so a broken torch install is one FATAL line.
         try:
             from task_outcome_ros.checkpoint import CheckpointError
-            from task_outcome_ros.inference import OutcomeSegmenter, default_model_path
+            from task_outcome_ros.inference import OutcomeSegmenter, resolve_model_path
         except ImportError as exc:
             raise StartupError(f"cannot import the inference stack: {exc}. Install the "
                                "package's requirements (torch, numpy, opencv).") from None
         model_path = self._params["model_path"] or None  # None: the segmenter's default
-        self._model_desc = model_path or f"{default_model_path()} (shipped)"
+        try:
+            self._model_desc = str(resolve_model_path(model_path))
+        except CheckpointError as exc:
+            raise StartupError(f"cannot use model '{model_path}': {exc}") from None
         try:
             seg = OutcomeSegmenter(model_path, device=self._params["device"],
                                    presence_min_pixels=self._params["presence_min_pixels"],
@@ -203,9 +210,9 @@ class OutcomeNode(Node):
         except (CheckpointError, ValueError, RuntimeError, OSError, ImportError) as exc:
             raise StartupError(
                 f"cannot use model '{self._model_desc}' (device '{self._params['device']}', "
-                f"backend '{self._params['backend']}'): {exc}. Fix model_path (a checkpoint "
-                "written by `python -m training train`, or '' for the shipped one), device or "
-                "backend.") from None
+                f"backend '{self._params['backend']}'): {exc}. Fix model_path (a shipped "
+                "model's name, a checkpoint written by `python -m training train`, or '' for "
+                "the default), device or backend.") from None
         self._model_desc += f" [{seg.backend}: {getattr(seg, 'backend_reason', '')}]"
         return seg
 
@@ -220,6 +227,7 @@ class OutcomeNode(Node):
 
     # callbacks (executor thread): store and return ----------------------------------------
     def _on_image(self, msg: Image) -> None:
+        self._transport.on_image()
         with self._lock:
             if self._pending is not None:
                 self._dropped += 1
@@ -227,6 +235,9 @@ class OutcomeNode(Node):
             self._lock.notify()
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
+        warning = self._transport.on_camera_info()
+        if warning:
+            self.get_logger().warning(warning)
         with self._lock:
             self._camera_info = msg
 
@@ -270,6 +281,12 @@ class OutcomeNode(Node):
                         f"{frame.error}", throttle_duration_sec=WARN_THROTTLE_S)
             self._publish_status(msg.header, frame.fields)
             return
+        if frame.result.outside_envelope:
+            log.warning(
+                "frame outside what the model was trained for ("
+                f"{'; '.join(frame.result.outside_envelope)}): its answer cannot be trusted. "
+                "Use the shipped model for this kind of cell (model_path:=NAME) or train one "
+                "for it (README: Retraining)", throttle_duration_sec=ENVELOPE_THROTTLE_S)
         # Labels and status first: they are what a manipulation stack waits for.
         self._pub_labels.publish(_image_msg(msg.header, frame.labels, "mono8"))
         self._publish_status(msg.header, frame.fields)

@@ -15,6 +15,9 @@ import numpy as np
 
 from task_outcome_ros import labels as L
 from task_outcome_ros.camera import Intrinsics, intrinsics_for_image  # noqa: F401 (re-export)
+from task_outcome_ros.envelope import envelope_value
+
+UNCHECKED = "unchecked: the checkpoint records no training envelope"
 
 STATUS_NAME = "task_outcome"
 # diagnostic_msgs/DiagnosticStatus levels (the byte constants, as ints).
@@ -125,13 +128,23 @@ def status_fields(result: Any, intrinsics: Intrinsics | None = None, *,
 
     Per outcome ``present``, ``pixels`` and ``objects``; per failure object its pixel centroid
     and, with ``intrinsics``, its optical-frame position; ``camera_note`` says why camera_info
-    was not used; then the timing values.
+    was not used; ``envelope`` (``ok``, ``outside: <why>``, or unchecked for a checkpoint
+    without a training envelope); then the timing values. Outside the envelope the level is
+    at least WARN and the message says so.
     """
     values, _ = _outcome_values(result, intrinsics)
     if camera_note:
         values.append(("camera_info", camera_note))
+    outside = list(getattr(result, "outside_envelope", []))
+    values.append(("envelope", envelope_value(outside) if getattr(result, "envelope_checked",
+                                                                   False) else UNCHECKED))
     values += timing_values(result.inference_ms, dropped, latency_ms)
-    return StatusFields(status_level(result.present), present_message(result.present), values)
+    level = status_level(result.present)
+    message = present_message(result.present)
+    if outside:  # never OK for a frame the model cannot judge (docs/interface.md §5)
+        level = max(level, WARN)
+        message = f"{message}; outside the trained envelope: {'; '.join(outside)}"
+    return StatusFields(level, message, values)
 
 
 def error_fields(why: str, *, dropped: int = 0, latency_ms: float = 0.0) -> StatusFields:

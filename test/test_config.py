@@ -52,14 +52,22 @@ OUT_OF_RANGE = [
     (None, "val_fraction", 0.9, ["dataset.val_fraction", "[0.0, 0.5]"]),
     ("scene", "min_objects", 0, ["scene.min_objects", "[1, 8]"]),
     ("scene", "max_objects", -1, ["scene.max_objects", "[1, 8]"]),
-    ("scene", "wall_height", 0.0, ["scene.wall_height", "[0.05, 1.0]"]),
-    ("camera", "focal_px", (500.0, 590.0), ["camera.focal_px[0]", "500", "[525.0, 590.0]"]),
-    ("camera", "elevation_deg", (30.0, 65.0),
-     ["camera.elevation_deg[0]", "30", "[40.0, 65.0]"]),
-    ("camera", "distance", (1.6, 3.0), ["camera.distance[1]", "3.0", "[1.6, 2.4]"]),
-    ("camera", "distance", (float("nan"), 2.0), ["camera.distance[0]", "[1.6, 2.4]"]),
-    ("camera", "principal_offset_px", 9.0, ["camera.principal_offset_px", "[0.0, 8.0]"]),
+    ("scene", "wall_height", (0.0, 0.25), ["scene.wall_height[0]", "[0.05, 1.0]"]),
+    ("scene", "inner_size_y", (0.05, 0.5), ["scene.inner_size_y[0]", "[0.1, 5.0]"]),
+    ("scene", "release_orientation", "sideways", ["scene.release_orientation", "upright"]),
+    ("scene", "shape_weights", (("box", 1.0), ("sphere", 1.0)),
+     ["scene.shape_weights", "sphere", "cylinder"]),
+    ("scene", "shape_weights", (("box", 0.0),), ["scene.shape_weights", "weight > 0"]),
+    ("camera", "focal_px", (40.0, 590.0), ["camera.focal_px[0]", "40", "[50.0, 5000.0]"]),
+    ("camera", "elevation_deg", (3.0, 65.0),
+     ["camera.elevation_deg[0]", "3", "[5.0, 90.0]"]),
+    ("camera", "distance", (1.6, 12.0), ["camera.distance[1]", "12.0", "[0.2, 10.0]"]),
+    ("camera", "distance", (float("nan"), 2.0), ["camera.distance[0]", "[0.2, 10.0]"]),
+    ("camera", "principal_offset_px", 130.0, ["camera.principal_offset_px", "[0.0, 120.0]"]),
     ("camera", "width", 0, ["camera.width", "[16, 4096]"]),
+    # Envelopes that cannot see the fixture: beyond the sensor's range, or aimed off it.
+    ("camera", "distance", (1.6, 5.0), ["camera.distance", "0.5-4.5 m", "could not see"]),
+    ("camera", "target_offset", 0.6, ["camera.target_offset", "could leave the fixture"]),
 ]
 
 
@@ -83,6 +91,8 @@ INVERTED = [
     ("camera", "focal_px", (590.0, 525.0)),
     ("camera", "distance", (2.4, 1.6)),
     ("camera", "elevation_deg", (65.0, 40.0)),
+    ("scene", "inner_size_x", (0.8, 0.3)),
+    ("scene", "wall_height", (0.3, 0.1)),
 ]
 
 
@@ -129,14 +139,15 @@ def test_config_round_trips_through_json():
 def test_defaults_are_the_contract_scene_and_camera():
     """docs/interface.md §1 and §4; every default config must also validate."""
     s = SceneConfig()
-    assert s.wall_height == 0.25
-    assert s.container_inner_size == 1.0
+    assert s.wall_height == (0.25, 0.25)
+    assert s.inner_size_x == s.inner_size_y == (1.0, 1.0)
     assert s.wall_thickness == 0.02
     assert (s.min_objects, s.max_objects) == (1, 4)
+    assert s.shapes == {"box": 1.0} and s.table_size is None
     assert s.object_edge == (0.08, 0.30)
-    assert s.release_above_rim == 1.5
-    assert s.release_height == pytest.approx(1.75)   # object centre z at release
-    assert s.release_offset == 0.6
+    assert s.release_above_rim == (1.5, 1.5)
+    assert s.inner_size_x[0] / 2 + s.release_margin == pytest.approx(0.6)
+    assert s.release_frame == "world"
     c = CameraConfig()
     assert (c.width, c.height) == (640, 480)
     assert c.focal_px == (525.0, 590.0)
@@ -149,12 +160,22 @@ def test_defaults_are_the_contract_scene_and_camera():
     assert d.validate() is d
 
 
-def test_camera_envelope_accepts_its_own_bounds_only():
-    """The envelope's bounds themselves are allowed; anything wider is not."""
-    CameraConfig(focal_px=(525.0, 525.0), distance=(2.4, 2.4),
-                 elevation_deg=(40.0, 40.0)).validate()
+def test_camera_envelope_accepts_its_limits_only():
+    """Fixed values and the limits themselves are allowed; anything wider is not."""
+    CameraConfig(focal_px=(50.0, 50.0), distance=(0.2, 10.0),
+                 elevation_deg=(90.0, 90.0)).validate()
     with pytest.raises(ConfigError):
-        CameraConfig(focal_px=(525.0, 590.5)).validate()
+        CameraConfig(focal_px=(525.0, 5000.5)).validate()
+
+
+def test_configs_saved_before_the_scene_spec_still_load():
+    """A run folder's config.json from before per-axis footprints and ranges."""
+    old = {"scene": {"container_inner_size": 1.0, "wall_height": 0.25,
+                     "release_above_rim": 1.5, "release_offset": 0.6}}
+    scene = dataset_config_from_dict(old).scene
+    assert scene.inner_size_x == scene.inner_size_y == (1.0, 1.0)
+    assert scene.wall_height == (0.25, 0.25) and scene.release_above_rim == (1.5, 1.5)
+    assert scene.release_margin == pytest.approx(0.1)
 
 
 # ---- the CLI --------------------------------------------------------------------------------
@@ -204,11 +225,11 @@ def test_render_without_discovery_is_a_clear_error(tmp_path, capsys):
 def test_bad_saved_config_is_reported_not_raised(tmp_path, capsys):
     """A run folder whose config.json is outside the envelope: exit 2 naming the field."""
     bad = to_dict(DatasetConfig(episodes=2))
-    bad["camera"]["elevation_deg"] = [30.0, 65.0]
+    bad["camera"]["elevation_deg"] = [3.0, 65.0]
     save_json(tmp_path / "config.json", bad)
     assert main(["simulate", "--out", str(tmp_path), "--episodes", "2", "--workers", "1"]) == 2
     err = capsys.readouterr().err
-    assert "camera.elevation_deg[0]" in err and "[40.0, 65.0]" in err
+    assert "camera.elevation_deg[0]" in err and "[5.0, 90.0]" in err
     assert not (tmp_path / "simulate").exists()
 
 

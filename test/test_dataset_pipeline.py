@@ -41,6 +41,7 @@ from training.config import (
 )
 from training.dataset import split_episodes
 from training.discover import features, name_cluster
+from training.fixture import episode_fixture
 from training.geometry import SAMPLE_GRID, geometric_outcome, object_measurements
 from training.render import draw_camera, read_pair, render, render_episode, scene_boxes
 from training.seeding import episode_rng
@@ -193,7 +194,7 @@ def test_discovery_finds_the_three_outcomes(discovery_run):
 def test_one_grid_point_outside_is_farther_than_eps_from_fully_inside():
     """The gap discovery relies on: a box poking out of the container by one sample point is
     not within DBSCAN's eps of the fully-inside spike, so it cannot chain into success."""
-    base = {"com_offset": 0.5}
+    base = {"com_beyond_wall": -5.0}
     inside, one_out = features([{**base, "inside_fraction": 1.0},
                                 {**base, "inside_fraction": 1.0 - 1.0 / SAMPLE_GRID**3}])
     assert inside[1] == 0.0
@@ -236,7 +237,7 @@ BOTTOM = SCENE.bottom_thickness
 IN_MIDDLE = _box((0.2, 0.15, 0.1), (0.05, -0.1, BOTTOM + 0.05))
 OUTSIDE = _box((0.2, 0.15, 0.1), (0.9, 0.3, 0.05))
 UPRIGHT_TALL = _box((0.1, 0.1, 0.3), (0.0, 0.0, BOTTOM + 0.15))         # top 0.07 above rim
-ON_THE_WALL = _box((0.2, 0.2, 0.1), (0.51, 0.0, SCENE.wall_height + 0.05))
+ON_THE_WALL = _box((0.2, 0.2, 0.1), (0.51, 0.0, SCENE.max_wall_height + 0.05))
 
 
 @pytest.mark.parametrize("obj,expected", [(IN_MIDDLE, "success"), (OUTSIDE, "fell_outside"),
@@ -323,10 +324,10 @@ def _shots(cfg: DatasetConfig, episodes: list[dict], outcomes: list[list[str]],
     out = []
     for i in chosen:
         ep = episodes[i]
-        cam, _ = draw_camera(cfg.camera, cfg.scene, ep["floor_z"],
-                             episode_rng(cfg.seed, i, "render"))
+        fixture = episode_fixture(ep, cfg.scene)
+        cam, _ = draw_camera(cfg.camera, fixture, episode_rng(cfg.seed, i, "render"))
         boxes = scene_boxes(ep, outcomes[i], cfg.scene)
-        depth, labels, cosine = render(boxes, ep["floor_z"], cam)
+        depth, labels, cosine = render(boxes, fixture.room_floor_z, cam)
         out.append({"index": i, "episode": ep, "camera": cam, "boxes": boxes, "depth": depth,
                     "labels": labels, "cosine": cosine,
                     "noisy": render_episode(ep, outcomes[i], cfg, cfg.seed)})
@@ -446,10 +447,10 @@ def test_manifest_records_seeds_camera_objects_and_presence(run, run_data):
         assert 1.6 <= cam["distance"] <= 2.4 and 40.0 <= cam["elevation_deg"] <= 65.0
         position, target = np.array(cam["position"]), np.array(cam["look_at"])
         assert np.linalg.norm(position - target) == pytest.approx(cam["distance"])
-        centre = [0.0, 0.0, episodes[i]["floor_z"] + cfg.scene.wall_height / 2]
+        centre = [0.0, 0.0, episodes[i]["floor_z"] + cfg.scene.max_wall_height / 2]
         assert np.linalg.norm(target - centre) <= 0.1 + 1e-9
         # The recorded seed alone reproduces the camera.
-        again, _ = draw_camera(cfg.camera, cfg.scene, episodes[i]["floor_z"],
+        again, _ = draw_camera(cfg.camera, episode_fixture(episodes[i], cfg.scene),
                                np.random.default_rng(im["seed"]["render"]))
         assert again.fx == cam["fx"] and again.cx == cam["cx"]
         np.testing.assert_array_equal(again.position, position)

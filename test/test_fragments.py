@@ -71,18 +71,18 @@ def test_threshold_scales_with_the_image_area_and_bad_input_is_refused():
 
 
 def test_hard_case_tags_follow_the_geometry():
-    outer = 1.04
-    inside = {"com_offset": 0.5, "over_fraction": 1.0, "inside_fraction": 1.0}
-    assert object_tags({**inside, "top_above_rim": -0.1}, outer) == set()
-    assert object_tags({**inside, "top_above_rim": NEAR_RIM_M / 2}, outer) == {"near_rim"}
-    assert object_tags({**inside, "top_above_rim": -NEAR_RIM_M / 2}, outer) == {"near_rim"}
-    fell = {"com_offset": 2.0, "over_fraction": 0.0, "inside_fraction": 0.0,
-            "top_above_rim": 0.0}
-    assert object_tags(fell, outer) == set()                 # beside the container: no rim
-    across = {**fell, "com_offset": 1.02, "over_fraction": 0.6}
-    assert object_tags(across, outer) == {"near_rim", "across_wall"}
-    assert object_rim_gap({**inside, "top_above_rim": -0.004}, outer) == 0.004
-    assert object_rim_gap(fell, outer) is None
+    inside = {"com_offset": 0.5, "com_beyond_outer": 0.0, "over_fraction": 1.0,
+              "inside_fraction": 1.0}
+    assert object_tags({**inside, "top_above_rim": -0.1}) == set()
+    assert object_tags({**inside, "top_above_rim": NEAR_RIM_M / 2}) == {"near_rim"}
+    assert object_tags({**inside, "top_above_rim": -NEAR_RIM_M / 2}) == {"near_rim"}
+    fell = {"com_offset": 2.0, "com_beyond_outer": 1.0, "over_fraction": 0.0,
+            "inside_fraction": 0.0, "top_above_rim": 0.0}
+    assert object_tags(fell) == set()                 # beside the container: no rim
+    across = {**fell, "com_offset": 1.02, "com_beyond_outer": 0.0, "over_fraction": 0.6}
+    assert object_tags(across) == {"near_rim", "across_wall"}
+    assert object_rim_gap({**inside, "top_above_rim": -0.004}) == 0.004
+    assert object_rim_gap(fell) is None
 
 
 def test_rim_gap_bins_cover_every_gap_once():

@@ -24,6 +24,7 @@ from training.config import (
     load_json,
     save_json,
 )
+from training.scene import DEFAULT_SCENE, bundled_scenes, load_scene
 
 DEFAULT_OUT = Path("runs/default")
 
@@ -31,6 +32,9 @@ DEFAULT_OUT = Path("runs/default")
 def add_dataset_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=DEFAULT_OUT,
                    help="run folder (default: %(default)s)")
+    p.add_argument("--scene", default=None, metavar="NAME|FILE",
+                   help="scene spec: a bundled name (" + ", ".join(bundled_scenes())
+                        + ") or a YAML file (default: the run's own, else 'default')")
     p.add_argument("--episodes", type=positive_int, default=None,
                    help="episodes to simulate (default 10000, or the run's own)")
     p.add_argument("--seed", type=non_negative_int, default=None,
@@ -42,9 +46,20 @@ def add_dataset_args(p: argparse.ArgumentParser) -> None:
 
 
 def resolve_dataset_config(args: argparse.Namespace) -> DatasetConfig:
-    """The run folder's saved config if there is one, with the options given on top."""
+    """The scene spec given (else the run folder's saved config, else the default spec), with
+    the options given on top. A spec other than the run's own is refused when saved."""
     saved = Path(args.out) / "config.json"
-    cfg = dataset_config_from_dict(load_json(saved)) if saved.exists() else DatasetConfig()
+    scene = getattr(args, "scene", None)
+    if scene is not None and saved.exists():  # the run's size and seed, unless given anew
+        run = dataset_config_from_dict(load_json(saved))
+        cfg = load_scene(scene, episodes=run.episodes, seed=run.seed,
+                         chunk_size=run.chunk_size, val_fraction=run.val_fraction)
+    elif scene is not None:
+        cfg = load_scene(scene)
+    elif saved.exists():
+        cfg = dataset_config_from_dict(load_json(saved))
+    else:
+        cfg = load_scene(DEFAULT_SCENE)
     overrides = {name: getattr(args, attr) for name, attr in
                  (("episodes", "episodes"), ("seed", "seed"), ("workers", "workers"),
                   ("chunk_size", "chunk_size")) if getattr(args, attr, None) is not None}
@@ -171,13 +186,16 @@ def cmd_train(args) -> None:
 
 
 def ship(best: Path) -> Path:
-    """Install a checkpoint as the package's default model, with its ONNX export beside it."""
+    """Install a checkpoint as the package's model for its task (``model_path:=<task>``),
+    with its ONNX export beside it."""
     import shutil
 
-    from task_outcome_ros.inference import default_model_path
+    from task_outcome_ros.checkpoint import load
+    from task_outcome_ros.inference import models_dir, shipped_model_file
     from task_outcome_ros.onnx_export import export_onnx
 
-    target = default_model_path()
+    task = (load(best).train_config.get("dataset") or {}).get("task", "default")
+    target = models_dir() / shipped_model_file(task)
     target.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(best, target)
     export_onnx(target)

@@ -32,7 +32,7 @@ def _check_int(owner: str, name: str, value: int, lo: int, hi: int) -> None:
 
 def _check_interval(owner: str, name: str, interval: tuple[float, float], lo: float,
                     hi: float) -> None:
-    if len(interval) != 2:
+    if not isinstance(interval, (tuple, list)) or len(interval) != 2:
         raise ConfigError(f"{owner}.{name} must be a (min, max) pair, got {interval!r}")
     a, b = interval
     _check_range(owner, f"{name}[0]", a, lo, hi)
@@ -41,25 +41,50 @@ def _check_interval(owner: str, name: str, interval: tuple[float, float], lo: fl
         raise ConfigError(f"{owner}.{name} = {interval!r}: min must not exceed max")
 
 
+SHAPES = ("box", "cylinder")
+NOISE_MODELS = ("kinect_v1",)
+
+
 @dataclass(frozen=True)
 class SceneConfig:
-    """The simulated place task (docs/interface.md §1) and its physics domain randomisation."""
+    """The simulated place task (docs/interface.md §1) and its physics domain randomisation.
 
-    container_inner_size: float = 1.0     # m, inner footprint side
+    Every range is drawn per episode (uniform); a range with min == max is a fixed value. The
+    fixture is an open-top container with a rectangular inner footprint, standing on a support
+    plane: the room floor, or the top of a table with the room floor below it.
+    """
+
+    # The fixture (container), in its own frame: x and y along its walls, z up from its base.
+    inner_size_x: tuple[float, float] = (1.0, 1.0)    # m, inner footprint along x
+    inner_size_y: tuple[float, float] = (1.0, 1.0)    # m, inner footprint along y
+    wall_height: tuple[float, float] = (0.25, 0.25)   # m, base to rim top
     wall_thickness: float = 0.02          # m
-    wall_height: float = 0.25             # m, floor to rim top
     bottom_thickness: float = 0.02        # m, container floor slab
+    container_offset: float = 0.0         # m, base centre uniform in +-this along x and y
+    container_yaw_deg: tuple[float, float] = (-45.0, 45.0)   # square: 90 deg covers all yaws
+    # The support plane's height (the room floor, or the table top), and an optional table.
+    floor_height: tuple[float, float] = (-0.05, 0.05)        # m
+    table_size: tuple[float, float] | None = None            # m (x, y) of the table top
+    table_height: tuple[float, float] = (0.75, 0.75)         # m, table top above the room floor
+    table_offset: float = 0.0             # m, table centre uniform in +-this from the fixture
+    # The objects.
     min_objects: int = 1
     max_objects: int = 4
-    object_edge: tuple[float, float] = (0.08, 0.30)   # m, per axis, uniform
-    release_above_rim: float = 1.5        # m, object centre above the rim top
-    release_offset: float = 0.6           # m, x and y uniform in [-offset, offset]
-    # Domain randomisation of the physics and the container pose.
-    container_yaw_deg: tuple[float, float] = (-45.0, 45.0)   # square: 90 deg covers all yaws
-    floor_height: tuple[float, float] = (-0.05, 0.05)        # m
+    shape_weights: tuple[tuple[str, float], ...] = (("box", 1.0),)
+    object_edge: tuple[float, float] = (0.08, 0.30)          # m, box edges, per axis
+    cylinder_diameter: tuple[float, float] = (0.06, 0.20)    # m
+    cylinder_height: tuple[float, float] = (0.06, 0.25)      # m
     object_mass: tuple[float, float] = (0.1, 2.0)            # kg
     friction: tuple[float, float] = (0.3, 1.0)
     restitution: tuple[float, float] = (0.0, 0.4)
+    # The release: object centres above the rim top, over an area reaching ``release_margin``
+    # beyond the inner footprint on every side (negative: strictly inside it).
+    release_above_rim: tuple[float, float] = (1.5, 1.5)      # m
+    release_margin: float = 0.1           # m
+    # Axes of that area: "fixture" (along the container's walls) or "world" (the paper's
+    # scene: a square area fixed in the world while the container's yaw varies).
+    release_frame: str = "world"
+    release_orientation: str = "random"   # random | upright (random yaw, object z up)
     # Integration and the end of an episode.
     timestep: float = 1.0 / 240.0
     solver_iterations: int = 10
@@ -69,56 +94,111 @@ class SceneConfig:
     rest_hold_time: float = 0.25          # s every object must stay below both speeds
 
     @property
-    def rim_height(self) -> float:
-        return self.wall_height
+    def max_wall_height(self) -> float:
+        return float(self.wall_height[1])
 
     @property
-    def release_height(self) -> float:
-        return self.wall_height + self.release_above_rim
+    def shapes(self) -> dict[str, float]:
+        return dict(self.shape_weights)
 
     def validate(self) -> SceneConfig:
         o = "scene"
-        _check_range(o, "container_inner_size", self.container_inner_size, 0.2, 5.0)
+        _check_interval(o, "inner_size_x", self.inner_size_x, 0.1, 5.0)
+        _check_interval(o, "inner_size_y", self.inner_size_y, 0.1, 5.0)
+        _check_interval(o, "wall_height", self.wall_height, 0.05, 1.0)
         _check_range(o, "wall_thickness", self.wall_thickness, 0.002, 0.2)
-        _check_range(o, "wall_height", self.wall_height, 0.05, 1.0)
         _check_range(o, "bottom_thickness", self.bottom_thickness, 0.002, 0.1)
-        _check_int(o, "min_objects", self.min_objects, 1, 8)
-        _check_int(o, "max_objects", self.max_objects, self.min_objects, 8)
-        _check_interval(o, "object_edge", self.object_edge, 0.01, 1.0)
-        _check_range(o, "release_above_rim", self.release_above_rim, 0.1, 5.0)
-        _check_range(o, "release_offset", self.release_offset, 0.0, 3.0)
+        _check_range(o, "container_offset", self.container_offset, 0.0, 2.0)
         _check_interval(o, "container_yaw_deg", self.container_yaw_deg, -180.0, 180.0)
         _check_interval(o, "floor_height", self.floor_height, -1.0, 1.0)
+        if self.table_size is not None:
+            _check_interval(o, "table_size", (min(self.table_size), max(self.table_size)),
+                            0.2, 10.0)
+            if len(self.table_size) != 2:
+                raise ConfigError(f"{o}.table_size must be (x, y), got {self.table_size!r}")
+        _check_interval(o, "table_height", self.table_height, 0.2, 2.0)
+        _check_range(o, "table_offset", self.table_offset, 0.0, 5.0)
+        _check_int(o, "min_objects", self.min_objects, 1, 8)
+        _check_int(o, "max_objects", self.max_objects, self.min_objects, 8)
+        self._validate_shapes(o)
+        _check_interval(o, "object_edge", self.object_edge, 0.01, 1.0)
+        _check_interval(o, "cylinder_diameter", self.cylinder_diameter, 0.01, 1.0)
+        _check_interval(o, "cylinder_height", self.cylinder_height, 0.01, 1.0)
         _check_interval(o, "object_mass", self.object_mass, 0.01, 100.0)
         _check_interval(o, "friction", self.friction, 0.0, 5.0)
         _check_interval(o, "restitution", self.restitution, 0.0, 1.0)
+        _check_interval(o, "release_above_rim", self.release_above_rim, 0.0, 5.0)
+        _check_range(o, "release_margin", self.release_margin, -0.5, 3.0)
+        if self.release_frame not in ("fixture", "world"):
+            raise ConfigError(f"{o}.release_frame = {self.release_frame!r}: "
+                              "expected one of ('fixture', 'world')")
+        if self.release_orientation not in ("random", "upright"):
+            raise ConfigError(f"{o}.release_orientation = {self.release_orientation!r}: "
+                              "expected one of ('random', 'upright')")
         _check_range(o, "timestep", self.timestep, 1e-4, 0.05)
         _check_int(o, "solver_iterations", self.solver_iterations, 1, 1000)
         _check_range(o, "max_episode_time", self.max_episode_time, 0.5, 120.0)
+        if self.table_size is not None:
+            self._validate_table(o)
         return self
+
+    def _validate_shapes(self, o: str) -> None:
+        names = [name for name, _ in self.shape_weights]
+        unknown = sorted(set(names) - set(SHAPES))
+        if unknown or len(set(names)) != len(names):
+            raise ConfigError(f"{o}.shape_weights: shapes {unknown or names} must be distinct "
+                              f"names from {SHAPES}")
+        for name, weight in self.shape_weights:
+            _check_range(o, f"shape_weights.{name}", weight, 0.0, 1000.0)
+        if sum(w for _, w in self.shape_weights) <= 0:
+            raise ConfigError(f"{o}.shape_weights: at least one shape needs a weight > 0")
+
+    def _validate_table(self, o: str) -> None:
+        """The fixture must stand on the table wherever its pose and size are drawn."""
+        reach = math.hypot(self.inner_size_x[1] / 2 + self.wall_thickness,
+                           self.inner_size_y[1] / 2 + self.wall_thickness)
+        reach += self.container_offset + self.table_offset
+        half = min(self.table_size) / 2
+        if reach > half:
+            raise ConfigError(
+                f"{o}.table_size = {list(self.table_size)}: the fixture reaches {reach:.3f} m "
+                f"from the table centre (footprint, offsets and any yaw) but the table's "
+                f"half width is only {half:.3f} m; make the table at least {2 * reach:.3f} m")
 
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """The envelope camera draws come from (docs/interface.md §4). Ranges may only shrink it."""
+    """The envelope camera draws come from (docs/interface.md §4).
+
+    The defaults are the default task's Kinect-v1-like envelope; a scene spec may set its own
+    within the allowed limits below (DatasetConfig checks that it can see the fixture)."""
 
     width: int = 640
     height: int = 480
-    focal_px: tuple[float, float] = (525.0, 590.0)
+    focal_px: tuple[float, float] = (525.0, 590.0)    # fx = fy, at this width
     principal_offset_px: float = 8.0      # |cx - W/2|, |cy - H/2| at most this
     distance: tuple[float, float] = (1.6, 2.4)        # m, camera to look-at point
-    elevation_deg: tuple[float, float] = (40.0, 65.0)  # above the horizontal
-    target_offset: float = 0.1            # m, look-at point within this of the container centre
+    elevation_deg: tuple[float, float] = (40.0, 65.0)  # above the horizontal; 90 = straight down
+    azimuth_deg: tuple[float, float] = (0.0, 360.0)   # around the fixture, from its x axis
+    roll_deg: tuple[float, float] = (0.0, 0.0)        # about the optical axis
+    target_offset: float = 0.1            # m, look-at point within this of the fixture centre
+
+    @property
+    def nominal_focal_px(self) -> float:
+        return (self.focal_px[0] + self.focal_px[1]) / 2.0
 
     def validate(self) -> CameraConfig:
         o = "camera"
         _check_int(o, "width", self.width, 16, 4096)
         _check_int(o, "height", self.height, 16, 4096)
-        _check_interval(o, "focal_px", self.focal_px, 525.0, 590.0)
-        _check_range(o, "principal_offset_px", self.principal_offset_px, 0.0, 8.0)
-        _check_interval(o, "distance", self.distance, 1.6, 2.4)
-        _check_interval(o, "elevation_deg", self.elevation_deg, 40.0, 65.0)
-        _check_range(o, "target_offset", self.target_offset, 0.0, 0.1)
+        _check_interval(o, "focal_px", self.focal_px, 50.0, 5000.0)
+        _check_range(o, "principal_offset_px", self.principal_offset_px, 0.0,
+                     min(self.width, self.height) / 4)
+        _check_interval(o, "distance", self.distance, 0.2, 10.0)
+        _check_interval(o, "elevation_deg", self.elevation_deg, 5.0, 90.0)
+        _check_interval(o, "azimuth_deg", self.azimuth_deg, -360.0, 720.0)
+        _check_interval(o, "roll_deg", self.roll_deg, -180.0, 180.0)
+        _check_range(o, "target_offset", self.target_offset, 0.0, 1.0)
         return self
 
 
@@ -127,6 +207,7 @@ class NoiseConfig:
     """Kinect-v1 structured-light noise (see training/noise.py for the models and citations)."""
 
     enabled: bool = True
+    model: str = "kinect_v1"              # the named sensor model (training/noise.py)
     baseline: float = 0.075               # m, IR projector to IR camera
     disparity_subpixel: int = 8           # disparity quantised to 1/8 px
     # Axial noise in disparity: sigma_z = z^2 sigma_d / (fx b), 1.3 mm at 1 m, 11.8 mm at 3 m
@@ -143,6 +224,10 @@ class NoiseConfig:
 
     def validate(self) -> NoiseConfig:
         o = "noise"
+        if not isinstance(self.enabled, bool):
+            raise ConfigError(f"{o}.enabled = {self.enabled!r}: expected true or false")
+        if self.model not in NOISE_MODELS:
+            raise ConfigError(f"{o}.model = {self.model!r}: expected one of {NOISE_MODELS}")
         _check_range(o, "baseline", self.baseline, 0.01, 0.5)
         _check_int(o, "disparity_subpixel", self.disparity_subpixel, 1, 64)
         _check_range(o, "sigma_disparity_px", self.sigma_disparity_px, 0.0, 2.0)
@@ -183,6 +268,7 @@ class DiscoverConfig:
 class DatasetConfig:
     """The whole dataset run: how many episodes, the seed, the split, the parallelism."""
 
+    task: str = "default"                 # the scene spec this came from (training/scene.py)
     episodes: int = 10_000
     seed: int = 0
     val_fraction: float = 0.05
@@ -194,6 +280,8 @@ class DatasetConfig:
     discover: DiscoverConfig = field(default_factory=DiscoverConfig)
 
     def validate(self) -> DatasetConfig:
+        if not isinstance(self.task, str) or not self.task:
+            raise ConfigError(f"dataset.task = {self.task!r}: expected a spec name")
         _check_int("dataset", "episodes", self.episodes, 1, 10_000_000)
         _check_int("dataset", "seed", self.seed, 0, 2**63 - 1)
         _check_range("dataset", "val_fraction", self.val_fraction, 0.0, 0.5)
@@ -203,15 +291,62 @@ class DatasetConfig:
         self.camera.validate()
         self.noise.validate()
         self.discover.validate()
+        self._validate_camera_sees_fixture()
         return self
+
+    def _validate_camera_sees_fixture(self) -> None:
+        """The sensor must measure the fixture from every distance of the envelope, and the
+        look-at point must stay over the fixture's inner footprint."""
+        near, far = self.camera.distance
+        if self.noise.enabled and (near < self.noise.min_range or far > self.noise.max_range):
+            raise ConfigError(
+                f"camera.distance = {list(self.camera.distance)} m: the sensor measures "
+                f"{self.noise.min_range}-{self.noise.max_range} m (noise.min_range, "
+                "noise.max_range), so it could not see the fixture from every distance")
+        smallest_half = min(self.scene.inner_size_x[0], self.scene.inner_size_y[0]) / 2
+        if self.camera.target_offset > smallest_half:
+            raise ConfigError(
+                f"camera.target_offset = {self.camera.target_offset} m: the look-at point "
+                f"could leave the fixture, whose smallest inner half-width is "
+                f"{smallest_half:.3f} m")
 
 
 def to_dict(cfg: Any) -> dict:
     return dataclasses.asdict(cfg)
 
 
+def _legacy_scene(data: dict) -> dict:
+    """Scene fields of configs saved before the scene spec (a square container, fixed wall
+    height and release height, an absolute release offset) in today's terms."""
+    data = dict(data)
+    if "container_inner_size" in data:
+        side = data.pop("container_inner_size")
+        data.setdefault("inner_size_x", (side, side))
+        data.setdefault("inner_size_y", (side, side))
+    for name in ("wall_height", "release_above_rim"):
+        if isinstance(data.get(name), (int, float)):
+            data[name] = (data[name], data[name])
+    if "release_offset" in data:
+        offset = data.pop("release_offset")
+        data.setdefault("release_margin", offset - data.get("inner_size_x", (1.0,))[0] / 2)
+    return data
+
+
+def _tuples(value: Any) -> Any:
+    """JSON and YAML lists (also nested) -> tuples, as the frozen configs hold them."""
+    if isinstance(value, list):
+        return tuple(_tuples(v) for v in value)
+    if isinstance(value, dict):
+        return tuple((k, _tuples(v)) for k, v in value.items())
+    return value
+
+
 def _from_dict(cls: type, data: dict) -> Any:
     """Rebuild a (nested) frozen dataclass from a dict; unknown keys are an error."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{cls.__name__}: expected a mapping of fields, got {data!r}")
+    if cls is SceneConfig:
+        data = _legacy_scene(data)
     known = {f.name: f for f in dataclasses.fields(cls)}
     unknown = set(data) - set(known)
     if unknown:
@@ -221,10 +356,8 @@ def _from_dict(cls: type, data: dict) -> Any:
         default = getattr(cls(), name) if _has_default(cls, name) else None
         if dataclasses.is_dataclass(default):
             kwargs[name] = _from_dict(type(default), value)
-        elif isinstance(value, list):
-            kwargs[name] = tuple(value)
         else:
-            kwargs[name] = value
+            kwargs[name] = _tuples(value)
     return cls(**kwargs)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from task_outcome_ros.labels import IGNORE, NUM_CLASSES
-from training.config import DatasetConfig, load_json, save_json, to_dict
+from training.config import DatasetConfig, dataset_config_from_dict, load_json, save_json, to_dict
 from training.seeding import STAGE_STREAMS
 
 SPLITS = ("train", "val")
@@ -158,7 +158,10 @@ def save_run_config(run_dir: Path, cfg: DatasetConfig) -> None:
     data = json.loads(json.dumps(to_dict(cfg)))  # tuples -> lists, as they come back from disk
     comparable = {k: v for k, v in data.items() if k != "workers"}
     if path.exists():
-        old = {k: v for k, v in load_json(path).items() if k != "workers"}
+        # Through the config classes, so a folder saved before a field existed compares by
+        # what it means (its defaults), not by its spelling.
+        saved = json.loads(json.dumps(to_dict(dataset_config_from_dict(load_json(path)))))
+        old = {k: v for k, v in saved.items() if k != "workers"}
         if old != comparable:
             raise ValueError(
                 f"{path} holds a different config than requested; use another --out folder "

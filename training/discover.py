@@ -5,10 +5,14 @@ object's centre of mass): that distance, and likewise the height of the object's
 smoothly from "inside" to "sticking out", so DBSCAN finds no density gap between success and
 stuck objects. Two measurements in the container frame do have natural gaps:
 
-- ``com_offset``: Chebyshev distance of the centre of mass from the container axis in units of
-  the inner half-width. A box cannot balance on a 2 cm wall, so centres of mass are either
-  inside the footprint (< 1) or clearly beyond the outer wall (> ~1.13): a gap. Clipped at 1.5
-  so far-flung objects stay dense instead of turning into noise.
+- ``com_wall``: how far the centre of mass lies beyond the walls' inner faces, in wall
+  thicknesses, clipped to [-1, 2]. An object cannot balance on a 1-2 cm wall, so centres of
+  mass are inside the footprint (clipped to a dense spike at -1 once more than one wall
+  thickness in) or beyond the outer face by at least half the object's own thickness (a spike
+  at 2): between lie only objects leaning over the wall, a wide, nearly empty gap. Measured
+  in half-widths instead (the first version), that gap was wall / half-width: 0.04 for the
+  paper's 1 m container, but 0.025 for a 0.8 m tote with 1 cm walls, less than DBSCAN's
+  eps, and the stuck objects chained into the fallen ones on some seeds.
 - ``protrusion``: the fraction of the object's volume outside the container's inner volume,
   on a log scale: log10(outside + PROTRUSION_OFFSET), mapped to [0, 1]. Objects fully inside
   sit exactly at 0 (a dense spike); any part outside costs at least one grid point of
@@ -32,21 +36,17 @@ import numpy as np
 
 from task_outcome_ros.labels import OUTCOME_NAMES
 from training.config import DatasetConfig, SceneConfig, load_json, save_json
-from training.geometry import (
-    SAMPLE_GRID,
-    geometric_outcome,
-    object_measurements,
-    outer_footprint_ratio,
-)
+from training.geometry import SAMPLE_GRID, geometric_outcome, object_measurements
 
-COM_OFFSET_CLIP = 1.5
+COM_WALL_CLIP = (-1.0, 2.0)
 # Two decades below one grid point's share of the volume (see the module docstring).
 PROTRUSION_OFFSET = 0.01 / SAMPLE_GRID**3
 
 
 def features(measurements: list[dict[str, float]]) -> np.ndarray:
-    """(N, 2) DBSCAN features: clipped centre-of-mass offset, log-scaled protrusion."""
-    com = np.array([min(m["com_offset"], COM_OFFSET_CLIP) for m in measurements])
+    """(N, 2) DBSCAN features: centre of mass beyond the walls (clipped, in wall thicknesses),
+    log-scaled protrusion."""
+    com = np.clip([m["com_beyond_wall"] for m in measurements], *COM_WALL_CLIP)
     outside = np.array([1.0 - m["inside_fraction"] for m in measurements])
     decades = -np.log10(PROTRUSION_OFFSET)  # so that outside 0 -> 0 and outside 1 -> ~1
     protrusion = (np.log10(outside + PROTRUSION_OFFSET) + decades) / decades
@@ -55,12 +55,12 @@ def features(measurements: list[dict[str, float]]) -> np.ndarray:
 
 def name_cluster(members: list[dict[str, float]], scene: SceneConfig) -> str:
     """Name a cluster from what its typical member looks like."""
-    outer_ratio = outer_footprint_ratio(scene)
     inside = float(np.median([m["inside_fraction"] for m in members]))
     com = float(np.median([m["com_offset"] for m in members]))
+    beyond = float(np.median([m["com_beyond_outer"] for m in members]))
     if inside >= 0.999 and com < 1.0:
         return "success"
-    if com > outer_ratio and inside <= 0.001:
+    if beyond >= 0.5 and inside <= 0.001:
         return "fell_outside"
     return "stuck_on_rim"
 
@@ -123,7 +123,9 @@ def run_discover(run_dir: Path, cfg: DatasetConfig, episodes: list[dict]) -> lis
                                        5),
         "noise_points": result["noise_points"],
         "dbscan": {"eps": cfg.discover.eps, "min_samples": result["min_samples"],
-                   "features": ["com_offset (clipped at 1.5)", "log-scaled volume outside"]},
+                   "features": ["centre of mass beyond the walls' inner faces, in wall "
+                                "thicknesses, clipped to [-1, 2]",
+                                "log-scaled volume outside"]},
         "timed_out_episodes": int(sum(e["timed_out"] for e in episodes)),
     }
     save_json(run_dir / "discovery.json", report)
@@ -177,7 +179,7 @@ def plot_clusters(path: Path, result: dict, geometry: list[str], report: dict) -
     if wrong:
         ax.scatter(x[wrong, 0], x[wrong, 1], s=30, marker="x", color="m",
                    label=f"differs from geometric rule ({len(wrong)})")
-    ax.set_xlabel("centre-of-mass offset / inner half-width (clipped at 1.5)")
+    ax.set_xlabel("centre of mass beyond the inner wall faces / wall thickness (clipped)")
     ax.set_ylabel("volume outside container (log scale, 0 = none, 1 = all)")
     ax.set_title(f"Discovered outcomes: {report['n_clusters']} clusters, "
                  f"ARI vs geometry {report['ari_vs_geometry']:.4f}")

@@ -1,10 +1,13 @@
-"""Geometry of final object states in the container frame, shared by discovery and its tests."""
+"""Geometry of final object states in the fixture's frame, shared by discovery, hard cases
+and their tests. Everything is measured against the episode's own fixture
+(training/fixture.py): a rectangular footprint is measured per axis."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from training.config import SceneConfig
+from training.fixture import Fixture, episode_fixture
 
 # Sample points per box axis for volume fractions. The grid includes the box's faces, so a box
 # that pokes out of the container by any amount loses at least one point: "fully inside" is
@@ -26,18 +29,48 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     ], -2)
 
 
-def to_container_frame(points: np.ndarray, container_yaw: float, floor_z: float) -> np.ndarray:
-    """World points (..., 3) -> container frame (origin at the container's floor centre)."""
-    c, s = np.cos(-container_yaw), np.sin(-container_yaw)
-    p = np.asarray(points, dtype=np.float64) - np.array([0.0, 0.0, floor_z])
-    return np.stack([c * p[..., 0] - s * p[..., 1], s * p[..., 0] + c * p[..., 1], p[..., 2]], -1)
+def _unit_box_grid() -> np.ndarray:
+    axes = [np.linspace(-0.5, 0.5, SAMPLE_GRID)] * 3
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def _unit_cylinder_grid() -> np.ndarray:
+    """Points filling a cylinder of diameter 1 and height 1: rings of radius 0.1 .. 0.5 (the
+    surface included, so any part outside loses a point) at SAMPLE_GRID heights."""
+    rings = [(0.0, 0.0)]
+    for r in np.linspace(0.5 / SAMPLE_GRID * 2, 0.5, SAMPLE_GRID // 2):
+        n = max(6, int(round(2 * np.pi * r * SAMPLE_GRID * 2)))
+        a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+        rings += list(zip(r * np.cos(a), r * np.sin(a)))
+    disc = np.array(rings)
+    z = np.linspace(-0.5, 0.5, SAMPLE_GRID)
+    return np.concatenate([np.column_stack([disc, np.full(len(disc), h)]) for h in z])
+
+
+_UNIT_GRIDS = {"box": _unit_box_grid(), "cylinder": _unit_cylinder_grid()}
+
+
+def object_sample_points(obj: dict) -> np.ndarray:
+    """Points filling an object (box or cylinder), surface included, in world coordinates."""
+    grid = _UNIT_GRIDS[obj.get("shape", "box")] * np.asarray(obj["size"])
+    return grid @ quat_to_matrix(obj["orientation"]).T + np.asarray(obj["position"])
 
 
 def box_sample_points(size, position, orientation) -> np.ndarray:
     """A uniform grid of points filling a box, faces included, in world coordinates."""
-    axes = [np.linspace(-0.5, 0.5, SAMPLE_GRID)] * 3
-    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3) * np.asarray(size)
-    return g @ quat_to_matrix(orientation).T + np.asarray(position)
+    return object_sample_points({"size": size, "position": position,
+                                 "orientation": orientation})
+
+
+def object_top(obj: dict, fixture: Fixture) -> float:
+    """Height of the object's highest point above the fixture's base (m)."""
+    if obj.get("shape", "box") == "cylinder":  # the highest point of its two rim circles
+        axis = quat_to_matrix(obj["orientation"])[:, 2]
+        radial = np.sqrt(max(0.0, 1.0 - axis[2] ** 2))
+        reach = abs(axis[2]) * obj["size"][2] / 2 + radial * obj["size"][0] / 2
+        return float(obj["position"][2] + reach - fixture.base_z)
+    corners = fixture.to_frame(box_corners(obj["size"], obj["position"], obj["orientation"]))
+    return float(corners[:, 2].max())
 
 
 def box_corners(size, position, orientation) -> np.ndarray:
@@ -46,36 +79,34 @@ def box_corners(size, position, orientation) -> np.ndarray:
 
 
 def object_measurements(obj: dict, episode: dict, scene: SceneConfig) -> dict[str, float]:
-    """Measurements of one final object state, all in the container frame.
+    """Measurements of one final object state against the episode's fixture, in its frame.
 
-    - ``com_offset``: Chebyshev distance of the centre of mass from the container axis, in units
-      of the inner half-width (< 1 inside the inner footprint, > outer/inner outside the walls);
-    - ``inside_fraction``: fraction of the object's volume inside the container's inner volume
-      (inner footprint, below the rim top);
-    - ``over_fraction``: fraction of its volume above the container's outer footprint;
-    - ``top_above_rim``: height of its highest corner above the rim top (m).
+    - ``com_offset``: the centre of mass's offset from the footprint's centre, per axis in
+      units of that axis's inner half-width, the larger of the two (< 1 inside the inner
+      footprint);
+    - ``com_beyond_wall``: how far the centre of mass lies beyond the walls' inner faces, in
+      wall thicknesses (the larger axis): < 0 inside the inner footprint, 0-1 over the wall
+      top, > 1 beyond the outer footprint;
+    - ``com_beyond_outer``: 1.0 when the centre of mass is outside the outer footprint;
+    - ``inside_fraction``: fraction of the object's volume inside the inner volume (inner
+      footprint, below the rim top);
+    - ``over_fraction``: fraction of its volume above the outer footprint;
+    - ``top_above_rim``: height of its highest point above the rim top (m).
     """
-    half_in = scene.container_inner_size / 2.0
-    half_out = half_in + scene.wall_thickness
-    yaw, floor_z = episode["container_yaw"], episode["floor_z"]
-    pts = to_container_frame(box_sample_points(obj["size"], obj["position"],
-                                               obj["orientation"]), yaw, floor_z)
-    cheb = np.max(np.abs(pts[:, :2]), axis=1)
-    com = to_container_frame(np.asarray(obj["position"]), yaw, floor_z)
-    corners = to_container_frame(box_corners(obj["size"], obj["position"], obj["orientation"]),
-                                 yaw, floor_z)
+    fixture = episode_fixture(episode, scene)
+    half_in = np.array([fixture.half_x, fixture.half_y])
+    half_out = half_in + fixture.wall_thickness
+    pts = fixture.to_frame(object_sample_points(obj))
+    com = fixture.to_frame(np.asarray(obj["position"]))
+    inside_xy = np.all(np.abs(pts[:, :2]) <= half_in + CONTACT_SLOP, axis=1)
     return {
-        "com_offset": float(np.max(np.abs(com[:2])) / half_in),
-        "inside_fraction": float(np.mean((cheb <= half_in + CONTACT_SLOP)
-                                         & (pts[:, 2] <= scene.wall_height))),
-        "over_fraction": float(np.mean(cheb < half_out)),
-        "top_above_rim": float(corners[:, 2].max() - scene.wall_height),
+        "com_offset": float(np.max(np.abs(com[:2]) / half_in)),
+        "com_beyond_wall": float(np.max(np.abs(com[:2]) - half_in) / fixture.wall_thickness),
+        "com_beyond_outer": float(np.any(np.abs(com[:2]) > half_out)),
+        "inside_fraction": float(np.mean(inside_xy & (pts[:, 2] <= fixture.wall_height))),
+        "over_fraction": float(np.mean(np.all(np.abs(pts[:, :2]) < half_out, axis=1))),
+        "top_above_rim": object_top(obj, fixture) - fixture.wall_height,
     }
-
-
-def outer_footprint_ratio(scene: SceneConfig) -> float:
-    """The outer wall's half-width in units of the inner half-width (``com_offset``'s unit)."""
-    return 1.0 + scene.wall_thickness / (scene.container_inner_size / 2)
 
 
 def geometric_outcome(m: dict[str, float], scene: SceneConfig) -> str:
@@ -84,6 +115,6 @@ def geometric_outcome(m: dict[str, float], scene: SceneConfig) -> str:
     mass is outside the outer footprint; otherwise stuck_on_rim."""
     if m["com_offset"] < 1.0 and m["top_above_rim"] <= 0.0:
         return "success"
-    if m["com_offset"] > outer_footprint_ratio(scene):
+    if m["com_beyond_outer"]:
         return "fell_outside"
     return "stuck_on_rim"

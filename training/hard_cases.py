@@ -28,7 +28,7 @@ from pathlib import Path
 
 from training.chunks import load_chunks
 from training.config import dataset_config_from_dict, load_json
-from training.geometry import object_measurements, outer_footprint_ratio
+from training.geometry import object_measurements
 
 NEAR_RIM_M = 0.02
 TAGS = ("near_rim", "across_wall")
@@ -45,10 +45,10 @@ class HardCase:
     rim_gap_m: float | None
 
 
-def object_tags(m: dict[str, float], outer_ratio: float) -> set[str]:
+def object_tags(m: dict[str, float]) -> set[str]:
     """Tags of one object from its ``geometry.object_measurements``."""
     tags = set()
-    gap = object_rim_gap(m, outer_ratio)
+    gap = object_rim_gap(m)
     if gap is not None and gap < NEAR_RIM_M:
         tags.add("near_rim")
     if 0.0 < m["over_fraction"] < 1.0:
@@ -56,9 +56,9 @@ def object_tags(m: dict[str, float], outer_ratio: float) -> set[str]:
     return tags
 
 
-def object_rim_gap(m: dict[str, float], outer_ratio: float) -> float | None:
+def object_rim_gap(m: dict[str, float]) -> float | None:
     """|top - rim| (m) of an object whose centre of mass is over the container, else None."""
-    return abs(m["top_above_rim"]) if m["com_offset"] < outer_ratio else None
+    return None if m["com_beyond_outer"] else abs(m["top_above_rim"])
 
 
 def rim_gap_bin(gap_m: float | None) -> int:
@@ -82,7 +82,6 @@ def episode_hard_cases(data_dir: Path, wanted: set[int]) -> dict[int, HardCase] 
         return None
     cfg = dataset_config_from_dict(load_json(manifest_path)["config"])
     scene = cfg.scene
-    outer_ratio = outer_footprint_ratio(scene)
     try:
         episodes = load_chunks(data_dir / "simulate", cfg.episodes, cfg.chunk_size)
     except (FileNotFoundError, ValueError):
@@ -95,8 +94,8 @@ def episode_hard_cases(data_dir: Path, wanted: set[int]) -> dict[int, HardCase] 
         gaps = []
         for obj in episode["objects"]:
             m = object_measurements(obj, episode, scene)
-            found |= object_tags(m, outer_ratio)
-            if (gap := object_rim_gap(m, outer_ratio)) is not None:
+            found |= object_tags(m)
+            if (gap := object_rim_gap(m)) is not None:
                 gaps.append(gap)
         cases[int(episode["episode"])] = HardCase(tuple(sorted(found)),
                                                   min(gaps) if gaps else None)

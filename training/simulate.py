@@ -1,11 +1,13 @@
-"""Stage 1: drop 1-4 random boxes into an open container with pybullet and record where
-each one comes to rest (docs/interface.md §1).
+"""Stage 1: drop random objects (boxes, cylinders) into an open container with pybullet and
+record where each one comes to rest (docs/interface.md §1). The scene spec (SceneConfig) gives
+the ranges; each episode records the fixture it drew (training/fixture.py).
 
 One pybullet world lives per worker process and is reused between episodes: the floor and the
-container are moved and the objects removed and respawned, which is far cheaper than building a
-world per episode. pybullet cannot free a box shape once a body has used it (removeCollisionShape
-refuses: "it is used"), so memory grew ~8 KB per episode; the world is therefore rebuilt with
-resetSimulation every ``REBUILD_EVERY`` episodes, which frees them and keeps memory flat.
+container are moved (rebuilt only when the drawn geometry changes) and the objects removed and
+respawned, which is far cheaper than building a world per episode. pybullet cannot free a
+shape once a body has used it (removeCollisionShape refuses: "it is used"), so memory grew
+~8 KB per episode; the world is therefore rebuilt with resetSimulation every
+``REBUILD_EVERY`` episodes, which frees them and keeps memory flat.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 
 from training.chunks import load_chunks, run_chunks
 from training.config import DatasetConfig, SceneConfig
+from training.fixture import Fixture, _uniform, draw_fixture, episode_fixture
 from training.seeding import episode_rng
 
 
@@ -26,26 +29,6 @@ def random_quaternion(rng: np.random.Generator) -> list[float]:
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
     return [float(v) for v in q]
-
-
-def container_boxes(scene: SceneConfig) -> list[tuple[tuple[float, float, float],
-                                                      tuple[float, float, float]]]:
-    """The container as five boxes (half extents, centre) in its own frame, floor at z=0.
-
-    Shared by the physics and the renderer so they can never disagree about the geometry.
-    """
-    inner = scene.container_inner_size / 2.0
-    t = scene.wall_thickness
-    h = scene.wall_height
-    outer = inner + t
-    bottom = ((outer, outer, scene.bottom_thickness / 2.0), (0.0, 0.0, scene.bottom_thickness / 2))
-    walls = [
-        ((t / 2, outer, h / 2), (inner + t / 2, 0.0, h / 2)),
-        ((t / 2, outer, h / 2), (-inner - t / 2, 0.0, h / 2)),
-        ((inner, t / 2, h / 2), (0.0, inner + t / 2, h / 2)),
-        ((inner, t / 2, h / 2), (0.0, -inner - t / 2, h / 2)),
-    ]
-    return [bottom, *walls]
 
 
 @dataclass
@@ -60,23 +43,58 @@ class EpisodeDraw:
     masses: list[float]
     start_positions: list[list[float]]
     start_orientations: list[list[float]]
+    fixture: Fixture
+    shapes: list[str]
 
 
-def draw_episode(scene: SceneConfig, rng: np.random.Generator) -> EpisodeDraw:
+def draw_shapes(scene: SceneConfig, n: int, rng: np.random.Generator) -> list[str]:
+    """Each object's shape by the spec's weights (no draw when there is one shape)."""
+    names = [name for name, w in scene.shape_weights if w > 0]
+    if len(names) == 1:
+        return names * n
+    weights = np.array([w for _, w in scene.shape_weights if w > 0], float)
+    return [names[k] for k in rng.choice(len(names), size=n, p=weights / weights.sum())]
+
+
+def object_sizes(scene: SceneConfig, shapes: list[str], unit: np.ndarray) -> np.ndarray:
+    """(n, 3) sizes from (n, 3) uniform [0, 1) draws: box edges, or a cylinder's diameter
+    (twice, x and y) and height (z)."""
+    sizes = np.empty_like(unit)
+    for k, shape in enumerate(shapes):
+        if shape == "box":
+            lo, hi = scene.object_edge
+            sizes[k] = lo + (hi - lo) * unit[k]
+        else:
+            (dlo, dhi), (hlo, hhi) = scene.cylinder_diameter, scene.cylinder_height
+            d = dlo + (dhi - dlo) * unit[k, 0]
+            sizes[k] = (d, d, hlo + (hhi - hlo) * unit[k, 2])
+    return sizes
+
+
+def draw_episode(scene: SceneConfig, rng: np.random.Generator,
+                 fixture_rng: np.random.Generator) -> EpisodeDraw:
+    """The physics draws come from ``rng`` in the order they always had; what the scene spec
+    added (fixture geometry, shapes, release height) from ``fixture_rng``."""
     n = int(rng.integers(scene.min_objects, scene.max_objects + 1))
-    lo, hi = scene.object_edge
-    sizes = rng.uniform(lo, hi, size=(n, 3))
+    unit_sizes = rng.uniform(0.0, 1.0, size=(n, 3))
     floor_z = float(rng.uniform(*scene.floor_height))
     yaw = math.radians(float(rng.uniform(*scene.container_yaw_deg)))
-    offsets = rng.uniform(-scene.release_offset, scene.release_offset, size=(n, 2))
+    fixture = draw_fixture(scene, yaw, floor_z, fixture_rng)
+    shapes = draw_shapes(scene, n, fixture_rng)
+    sizes = object_sizes(scene, shapes, unit_sizes)
+    reach = np.array([fixture.half_x, fixture.half_y]) + scene.release_margin
+    offsets = -reach + (reach - -reach) * rng.uniform(0.0, 1.0, size=(n, 2))
+    offsets = fixture.to_world_xy(offsets, scene.release_frame)
     orientations = [random_quaternion(rng) for _ in range(n)]
+    if scene.release_orientation == "upright":
+        orientations = [upright_quaternion(fixture_rng) for _ in range(n)]
     masses = rng.uniform(*scene.object_mass, size=n)
     friction = float(rng.uniform(*scene.friction))
     restitution = float(rng.uniform(*scene.restitution))
     # Released together; where bounding spheres would overlap, a later object starts higher.
     radii = np.linalg.norm(sizes, axis=1) / 2.0
     positions: list[list[float]] = []
-    base_z = floor_z + scene.release_height
+    base_z = floor_z + (fixture.wall_height + _uniform(fixture_rng, scene.release_above_rim))
     for i in range(n):
         z = base_z
         for j, p in enumerate(positions):
@@ -84,14 +102,28 @@ def draw_episode(scene: SceneConfig, rng: np.random.Generator) -> EpisodeDraw:
                 z = max(z, p[2] + radii[i] + radii[j] + 0.01)
         positions.append([float(offsets[i][0]), float(offsets[i][1]), float(z)])
     return EpisodeDraw(yaw, floor_z, friction, restitution, sizes.tolist(), masses.tolist(),
-                       positions, orientations)
+                       positions, orientations, fixture, shapes)
+
+
+def upright_quaternion(rng: np.random.Generator) -> list[float]:
+    """Object z up, random yaw, as pybullet (x, y, z, w)."""
+    half = float(rng.uniform(0.0, math.pi))
+    return [0.0, 0.0, math.sin(half), math.cos(half)]
 
 
 REBUILD_EVERY = 200
 
 
+def _shape_key(fixture: Fixture) -> tuple:
+    """What the collision shapes depend on (not the pose, which is set per episode)."""
+    table = None if fixture.table is None else (fixture.table.half_x, fixture.table.half_y,
+                                                fixture.table.top_z - fixture.table.floor_z)
+    return (fixture.half_x, fixture.half_y, fixture.wall_height, fixture.wall_thickness,
+            fixture.bottom_thickness, table)
+
+
 class World:
-    """A reusable pybullet DIRECT world with a floor and the container."""
+    """A reusable pybullet DIRECT world: the room floor, the container and maybe a table."""
 
     def __init__(self, scene: SceneConfig):
         import pybullet as pb  # imported here so other stages don't need pybullet loaded
@@ -99,55 +131,82 @@ class World:
         self.pb = pb
         self.scene = scene
         self.client = pb.connect(pb.DIRECT)
+        self.shape_key: tuple | None = None
         self._build()
 
-    def _build(self) -> None:
-        pb, scene = self.pb, self.scene
-        pb.resetSimulation(physicsClientId=self.client)
+    def _build(self, fixture: Fixture | None = None) -> None:
+        """A fresh world. The container's (and table's) collision shapes follow ``fixture``'s
+        geometry; its pose is set per episode. A spec that draws the geometry per episode
+        rebuilds per episode, so a result never depends on the episodes before it."""
+        pb, scene, c = self.pb, self.scene, self.client
+        pb.resetSimulation(physicsClientId=c)
         self.episodes_since_build = 0
-        pb.setGravity(0, 0, -9.81, physicsClientId=self.client)
+        pb.setGravity(0, 0, -9.81, physicsClientId=c)
         pb.setPhysicsEngineParameter(fixedTimeStep=scene.timestep,
                                      numSolverIterations=scene.solver_iterations,
-                                     deterministicOverlappingPairs=1,
-                                     physicsClientId=self.client)
-        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=self.client)
-        self.floor = pb.createMultiBody(0, plane, physicsClientId=self.client)
-        boxes = container_boxes(scene)
+                                     deterministicOverlappingPairs=1, physicsClientId=c)
+        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
+        self.floor = pb.createMultiBody(0, plane, physicsClientId=c)
+        if fixture is None:  # the spec's first footprint, until an episode says otherwise
+            fixture = episode_fixture({"container_yaw": 0.0, "floor_z": 0.0}, scene)
+        boxes = fixture.container_boxes()
         shape = pb.createCollisionShapeArray(
             [pb.GEOM_BOX] * len(boxes), halfExtents=[list(b[0]) for b in boxes],
-            collisionFramePositions=[list(b[1]) for b in boxes], physicsClientId=self.client)
-        self.container = pb.createMultiBody(0, shape, physicsClientId=self.client)
-        self.objects: list[int] = []   # body ids of this episode's boxes
+            collisionFramePositions=[list(b[1]) for b in boxes], physicsClientId=c)
+        self.container = pb.createMultiBody(0, shape, physicsClientId=c)
+        self.table = None
+        if fixture.table is not None:
+            half, _ = fixture.table.box()
+            table_shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(half),
+                                                  physicsClientId=c)
+            self.table = pb.createMultiBody(0, table_shape, physicsClientId=c)
+        self.shape_key = _shape_key(fixture)
+        self.objects: list[int] = []   # body ids of this episode's objects
 
     def close(self) -> None:
         self.pb.disconnect(self.client)
 
-    def _clear_objects(self) -> None:
-        if self.episodes_since_build >= REBUILD_EVERY:
-            self._build()
+    def _prepare(self, fixture: Fixture) -> None:
+        """Remove the last episode's objects; rebuild when due or when the geometry changed."""
+        if self.episodes_since_build >= REBUILD_EVERY or _shape_key(fixture) != self.shape_key:
+            self._build(fixture)
             return
         for body in self.objects:
             self.pb.removeBody(body, physicsClientId=self.client)
         self.objects = []
 
+    def _object_shape(self, shape: str, size: list[float]) -> int:
+        pb, c = self.pb, self.client
+        if shape == "cylinder":  # pybullet cylinders stand along their local z
+            return pb.createCollisionShape(pb.GEOM_CYLINDER, radius=size[0] / 2,
+                                           height=size[2], physicsClientId=c)
+        return pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[s / 2 for s in size],
+                                       physicsClientId=c)
+
     def run(self, draw: EpisodeDraw) -> dict:
-        pb, c, scene = self.pb, self.client, self.scene
-        self._clear_objects()
+        pb, c, scene, fixture = self.pb, self.client, self.scene, draw.fixture
+        self._prepare(fixture)
         self.episodes_since_build += 1
         yaw_q = pb.getQuaternionFromEuler([0, 0, draw.container_yaw])
-        pb.resetBasePositionAndOrientation(self.floor, [0, 0, draw.floor_z], [0, 0, 0, 1],
-                                           physicsClientId=c)
-        pb.resetBasePositionAndOrientation(self.container, [0, 0, draw.floor_z], yaw_q,
-                                           physicsClientId=c)
+        pb.resetBasePositionAndOrientation(self.floor, [0, 0, fixture.room_floor_z],
+                                           [0, 0, 0, 1], physicsClientId=c)
+        pb.resetBasePositionAndOrientation(self.container, [fixture.x, fixture.y, draw.floor_z],
+                                           yaw_q, physicsClientId=c)
+        statics = [self.floor, self.container]
+        if self.table is not None:
+            _, centre = fixture.table.box()
+            pb.resetBasePositionAndOrientation(self.table, list(centre), yaw_q,
+                                               physicsClientId=c)
+            statics.append(self.table)
         # Bullet multiplies the two bodies' coefficients: static bodies at 1 make the drawn
         # value the effective one for object-container and object-floor contacts.
-        for body in (self.floor, self.container):
+        for body in statics:
             pb.changeDynamics(body, -1, lateralFriction=1.0, restitution=1.0,
                               physicsClientId=c)
-        for size, mass, pos, orn in zip(draw.sizes, draw.masses, draw.start_positions,
-                                        draw.start_orientations):
-            shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[s / 2 for s in size],
-                                            physicsClientId=c)
+        for shape_name, size, mass, pos, orn in zip(draw.shapes, draw.sizes, draw.masses,
+                                                    draw.start_positions,
+                                                    draw.start_orientations):
+            shape = self._object_shape(shape_name, size)
             body = pb.createMultiBody(mass, shape, basePosition=pos, baseOrientation=orn,
                                       physicsClientId=c)
             pb.changeDynamics(body, -1, lateralFriction=draw.friction,
@@ -174,6 +233,7 @@ class World:
         for k, body in enumerate(self.objects):
             pos, orn = pb.getBasePositionAndOrientation(body, physicsClientId=c)
             objects.append({
+                "shape": draw.shapes[k],
                 "size": [round(s, 6) for s in draw.sizes[k]],
                 "mass": round(draw.masses[k], 6),
                 "position": [float(v) for v in pos],
@@ -183,6 +243,7 @@ class World:
         return {
             "container_yaw": draw.container_yaw,
             "floor_z": draw.floor_z,
+            "fixture": fixture.to_record(),
             "friction": draw.friction,
             "restitution": draw.restitution,
             "sim_time": steps * scene.timestep,
@@ -193,7 +254,8 @@ class World:
 
 def simulate_episode(world: World, run_seed: int, episode: int) -> dict:
     """Draw and simulate one episode; the result depends only on (run_seed, episode)."""
-    draw = draw_episode(world.scene, episode_rng(run_seed, episode, "simulate"))
+    draw = draw_episode(world.scene, episode_rng(run_seed, episode, "simulate"),
+                        episode_rng(run_seed, episode, "fixture"))
     result = world.run(draw)
     result["episode"] = episode
     return result

@@ -48,7 +48,15 @@ from task_outcome_ros.model import (
     check_normalisation,
     network_input,
 )
-from training.config import TrainConfig, save_json, to_dict
+from training.config import (
+    CameraConfig,
+    DatasetConfig,
+    NoiseConfig,
+    TrainConfig,
+    dataset_config_from_dict,
+    save_json,
+    to_dict,
+)
 from training.dataset import load_cache, load_manifest
 from training.hard_cases import episode_hard_cases
 from training.losses import outcome_lovasz_loss
@@ -60,6 +68,30 @@ WARMUP_FRACTION = 0.03
 # 160 x 120, which the same renders confirm (1.3-4.0 mm). Re-drawn augmentation noise is
 # scaled from this, so training inputs stay as noisy as the ones the network will see.
 SENSOR_NOISE_PER_Z2 = 0.0016
+
+
+# The default task's sensor (training/config.NoiseConfig defaults), which the figure above
+# measured: other sensors scale it by their axial noise, sigma_d / (f b).
+_DEFAULT_AXIAL = NoiseConfig().sigma_disparity_px / (CameraConfig().nominal_focal_px
+                                                     * NoiseConfig().baseline)
+
+
+def task_normalisation(dataset: DatasetConfig) -> dict:
+    """The network input's normalisation for a task: depth centred on the envelope's middle
+    distance, heights in units of the tallest wall (the rim sits at 1 or below), and the
+    envelope's middle focal length as the nominal camera. The default task's is exactly
+    ``model.DEFAULT_NORMALISATION``."""
+    norm = dict(DEFAULT_NORMALISATION)
+    norm["offset_m"] = (dataset.camera.distance[0] + dataset.camera.distance[1]) / 2
+    norm["height_scale_m"] = dataset.scene.max_wall_height
+    norm["focal_over_width"] = dataset.camera.nominal_focal_px / dataset.camera.width
+    return norm
+
+
+def sensor_noise_ratio(dataset: DatasetConfig) -> float:
+    """The task's sensor noise over the default sensor's, for the augmentation noise."""
+    noise, camera = dataset.noise, dataset.camera
+    return noise.sigma_disparity_px / (camera.nominal_focal_px * noise.baseline) / _DEFAULT_AXIAL
 
 
 def class_weights(labels: np.ndarray, power: float) -> torch.Tensor:
@@ -355,8 +387,10 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     device = resolve_device(cfg.device)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    norm = dict(DEFAULT_NORMALISATION)
     manifest = load_manifest(run_dir)
+    dataset = dataset_config_from_dict(manifest["config"])
+    norm = task_normalisation(dataset)
+    aug_noise = cfg.aug_noise * sensor_noise_ratio(dataset)
     train_arrays = load_cache(run_dir, "train", cfg.input_size)
     val_arrays = load_cache(run_dir, "val", cfg.input_size)
     if cfg.camera_intrinsics:
@@ -422,7 +456,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         for b in bar:
             idx = np.sort(order[b * cfg.batch_size:(b + 1) * cfg.batch_size])
             depth, valid, labels, intrinsics = gather_batch(
-                train_arrays, idx, gen if cfg.augment else None, cfg.aug_noise)
+                train_arrays, idx, gen if cfg.augment else None, aug_noise)
             x = network_input(depth, valid, norm, intrinsics).to(device,
                                                                  memory_format=memory_format)
             labels = labels.to(device)

@@ -1,0 +1,125 @@
+"""The envelope a model was trained for, and whether one frame lies inside it.
+
+A network trained on one cell says nothing useful about another: fed real totes, the default
+model reported ``fell_outside`` everywhere, empty totes included. So every frame is checked,
+cheaply, against what the checkpoint was trained on (docs/interface.md §5):
+
+- the depth of the scene: the median valid depth must lie near the envelope's camera
+  distances (``DEPTH_SLACK``: what the training renders themselves span, with a margin);
+- a support plane: enough of the frame must lie on the fitted floor (``MIN_SUPPORT_FRACTION``);
+- the fixture: the network must see it in a part of the frame (``MIN_FIXTURE_FRACTION``);
+- the camera: camera_info's focal length, scaled to the trained width, must lie in the
+  trained range (``FOCAL_SLACK``).
+
+The thresholds come from the training renders of the bundled specs, not from any evaluation
+set: default (1.6-2.4 m) renders have median depths of 1.70-2.54 m and fixture fractions of
+0.15 or more; tote (0.5-1.3 m) renders 0.53-1.57 m and 0.027 or more.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from task_outcome_ros.camera import Intrinsics
+
+# Median valid depth within [lo x distance_min, hi x distance_max]: the renders span 0.95-1.3x
+# the look-at distance (the far floor pulls the median beyond it).
+DEPTH_SLACK = (0.9, 1.2)
+MIN_VALID_FRACTION = 0.2     # of the frame's pixels
+MIN_SUPPORT_FRACTION = 0.05  # of the valid working-size pixels within SUPPORT_BAND_M of it
+SUPPORT_BAND_M = 0.01
+MIN_FIXTURE_FRACTION = 0.01  # of the valid pixels labelled as the fixture
+FOCAL_SLACK = 0.1            # +-10 % beyond the trained focal range
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """What a checkpoint was trained on (from its dataset config)."""
+
+    task: str
+    width: int
+    height: int
+    focal_px: tuple[float, float]       # fx at ``width``
+    distance_m: tuple[float, float]     # camera to the fixture's centre
+
+    @classmethod
+    def from_dataset_config(cls, dataset: dict[str, Any]) -> Envelope | None:
+        """From the plain dataset config a checkpoint embeds (``train_config["dataset"]``);
+        None when it has none (a hand-made checkpoint: nothing to check against)."""
+        camera = (dataset or {}).get("camera")
+        if not camera:
+            return None
+        return cls(str(dataset.get("task", "default")), int(camera["width"]),
+                   int(camera["height"]), tuple(float(v) for v in camera["focal_px"]),
+                   tuple(float(v) for v in camera["distance"]))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def depth_range(self) -> tuple[float, float]:
+        return self.distance_m[0] * DEPTH_SLACK[0], self.distance_m[1] * DEPTH_SLACK[1]
+
+    def focal_range(self, width: int) -> tuple[float, float]:
+        """The trained fx range for an image ``width`` px wide (with the slack)."""
+        scale = width / self.width
+        return (self.focal_px[0] * scale * (1 - FOCAL_SLACK),
+                self.focal_px[1] * scale * (1 + FOCAL_SLACK))
+
+
+@dataclass(frozen=True)
+class FrameStats:
+    """What the envelope check needs of one frame, computed while segmenting it."""
+
+    valid_fraction: float
+    median_depth_m: float | None
+    support_fraction: float | None      # None: the model has no height channel
+    fixture_fraction: float
+
+
+def frame_stats(depth: np.ndarray, labels: np.ndarray, heights_m: np.ndarray | None,
+                fixture_id: int) -> FrameStats:
+    """``depth``: sanitised metres (NaN invalid); ``labels``: the segmentation, same size;
+    ``heights_m``: working-size heights above the fitted floor (NaN where invalid)."""
+    valid = np.isfinite(depth)
+    n_valid = int(valid.sum())
+    median = float(np.median(depth[valid])) if n_valid else None
+    support = None
+    if heights_m is not None:
+        finite = np.isfinite(heights_m)
+        support = (float(np.mean(np.abs(heights_m[finite]) < SUPPORT_BAND_M))
+                   if finite.any() else 0.0)
+    fixture = float(np.count_nonzero(labels[valid] == fixture_id) / n_valid) if n_valid else 0.0
+    return FrameStats(n_valid / depth.size, median, support, fixture)
+
+
+def check(envelope: Envelope | None, stats: FrameStats,
+          intrinsics: Intrinsics | None = None) -> list[str]:
+    """Why the frame is outside the envelope (empty: inside)."""
+    if envelope is None:
+        return []
+    why = []
+    if stats.valid_fraction < MIN_VALID_FRACTION:
+        why.append(f"only {stats.valid_fraction:.0%} of the pixels have depth")
+    lo, hi = envelope.depth_range()
+    if stats.median_depth_m is not None and not lo <= stats.median_depth_m <= hi:
+        why.append(f"median depth {stats.median_depth_m:.2f} m, trained "
+                   f"{envelope.distance_m[0]:g}-{envelope.distance_m[1]:g} m")
+    if stats.support_fraction is not None and stats.support_fraction < MIN_SUPPORT_FRACTION:
+        why.append("no support plane found")
+    if stats.fixture_fraction < MIN_FIXTURE_FRACTION:
+        why.append("fixture not seen")
+    if intrinsics is not None:
+        flo, fhi = envelope.focal_range(intrinsics.width)
+        if not flo <= intrinsics.fx <= fhi:
+            scale = intrinsics.width / envelope.width
+            why.append(f"fx {intrinsics.fx:.0f} px, trained {envelope.focal_px[0] * scale:.0f}"
+                       f"-{envelope.focal_px[1] * scale:.0f} px at {intrinsics.width} px wide")
+    return why
+
+
+def envelope_value(why: list[str]) -> str:
+    """The status's ``envelope`` value."""
+    return "outside: " + "; ".join(why) if why else "ok"
