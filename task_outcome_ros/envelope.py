@@ -26,8 +26,10 @@ import numpy as np
 from task_outcome_ros.camera import Intrinsics
 
 # Median valid depth within [lo x distance_min, hi x distance_max]: the renders span 0.95-1.3x
-# the look-at distance (the far floor pulls the median beyond it).
-DEPTH_SLACK = (0.9, 1.2)
+# the look-at distance (the far floor pulls the median beyond it), so the bounds hold the
+# default renders (1.70-2.54 m in 1.44-3.0 m) and the tote's (0.53-1.57 m in 0.45-1.63 m)
+# while each refuses all of the other's.
+DEPTH_SLACK = (0.9, 1.25)
 MIN_VALID_FRACTION = 0.2     # of the frame's pixels
 MIN_SUPPORT_FRACTION = 0.05  # of the valid working-size pixels within SUPPORT_BAND_M of it
 SUPPORT_BAND_M = 0.01

@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -159,9 +160,11 @@ class LiveRun:
 
 
 def run_live(bag: Path, out: Path, *, rate_hz_note: str = "", timeout_s: float = 60.0,
-             node_args: list[str] | None = None, log=print) -> LiveRun:
+             node_args: list[str] | None = None, log=print,
+             then: Callable[[dict[str, str]], None] | None = None) -> LiveRun:
     """Start outcome_node, replay ``bag`` to it, record and score; the node log goes to
-    ``out/outcome_node.log`` and the answers to ``out/output_bag``."""
+    ``out/outcome_node.log`` and the answers to ``out/output_bag``. ``then(env)`` runs while
+    the node is still up (with the DDS environment of the run), e.g. a client of it."""
     ground_truth = load_ground_truth(bag)
     if ground_truth is None:
         raise B.BagToolError(f"{bag} has no ground_truth.json to score against")
@@ -182,6 +185,9 @@ def run_live(bag: Path, out: Path, *, rate_hz_note: str = "", timeout_s: float =
             while len(recorder.received["outcome/status"]) < n_frames \
                     and time.monotonic() < deadline:
                 time.sleep(0.1)
+            received = {topic: dict(by_stamp) for topic, by_stamp in recorder.received.items()}
+            if then is not None:
+                then(env)
         finally:
             recorder.close()
             node.terminate()
@@ -189,7 +195,6 @@ def run_live(bag: Path, out: Path, *, rate_hz_note: str = "", timeout_s: float =
                 node.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 node.kill()
-    received = recorder.received
     predicted = {stamp: status_present(msg) for stamp, (_, msg)
                  in received["outcome/status"].items()}
     write_output_bag(out / "output_bag", received)

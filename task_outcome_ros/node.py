@@ -31,16 +31,19 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     SetParametersResult,
 )
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import ColorRGBA, Header
+from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from task_outcome_ros import labels as L
 from task_outcome_ros import outcome_report as R
+from task_outcome_ros.check import CheckBook, frame_answer
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from task_outcome_ros.frames import NO_CAMERA_INFO_NOTE, process_frame
 from task_outcome_ros.transport import TransportMonitor
@@ -52,6 +55,10 @@ DEVICE_CHOICES = ("cpu", "cuda", "auto")
 BACKEND_CHOICES = ("auto", "torch", "onnx")
 WARN_THROTTLE_S = 2.0
 ENVELOPE_THROTTLE_S = 10.0
+# While outcome/check requests wait, rclpy re-runs their coroutines on every spin and a spin
+# returns at once: the main loop then pauses this long between spins (the answer is at most
+# this much later) instead of taking a core from inference.
+CHECK_SPIN_PAUSE_S = 0.002
 MARKER_DIAMETER_M = 0.1
 
 
@@ -103,6 +110,10 @@ PARAMS: dict[str, _ParamSpec] = {
         True, "Publish outcome/markers: a sphere at each failure object's 3-D centroid "
               "(needs depth/camera_info).",
         False, "true or false"),
+    "check_timeout_s": _ParamSpec(
+        2.0, "outcome/check waits at most this long for a frame stamped after the request; "
+             "then it answers success=false, 'no frame within N s'.",
+        False, "a floating-point number of seconds in [0.05, 60.0], e.g. 2.0", (0.05, 60.0)),
     "qos": _ParamSpec(
         "sensor_data", "QoS of the depth/image_raw and depth/camera_info subscriptions: "
                        "'sensor_data' (best effort, keep last 5) or 'reliable' (keep last 5). "
@@ -148,6 +159,12 @@ class OutcomeNode(Node):
         self._transport = TransportMonitor()  # callbacks only: the executor's one thread
         self._stop = False
 
+        # outcome/check: requests wait, as coroutines, for a newer frame. A waiting coroutine
+        # holds its callback group, hence a reentrant group of its own: concurrent requests
+        # all wait, and the subscriptions (default group) keep running.
+        self._checks = CheckBook()
+        self.create_service(Trigger, "outcome/check", self._on_check,
+                            callback_group=ReentrantCallbackGroup())
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.create_subscription(Image, "depth/image_raw", self._on_image, in_qos)
         self.create_subscription(CameraInfo, "depth/camera_info", self._on_camera_info, in_qos)
@@ -216,12 +233,41 @@ class OutcomeNode(Node):
         self._model_desc += f" [{seg.backend}: {getattr(seg, 'backend_reason', '')}]"
         return seg
 
+    # outcome/check (executor thread) ---------------------------------------------------------
+    async def _on_check(self, request: Trigger.Request, response: Trigger.Response
+                        ) -> Trigger.Response:
+        """Wait for the first frame stamped after now. A coroutine: while it waits the
+        executor goes on receiving frames and other calls, resuming it on each spin (the
+        main loop paces those spins while checks wait, see ``main``)."""
+        timeout_s = float(self._params["check_timeout_s"])
+        token = self._checks.ask(self.get_clock().now().nanoseconds)
+        deadline = time.monotonic() + timeout_s
+        while (answer := self._checks.poll(token, time.monotonic() >= deadline,
+                                           timeout_s)) is None:
+            await _next_spin()
+        response.success, response.message = answer.success, answer.message
+        return response
+
+    def checks_waiting(self) -> bool:
+        return self._checks.pending() > 0
+
+    def _answer_checks(self, header: Header, frame: Any) -> None:
+        """Worker thread: a processed frame answers the requests that arrived before it."""
+        if not self._checks.pending():
+            return
+        result = frame.result
+        answer = frame_answer((header.stamp.sec, header.stamp.nanosec), header.frame_id,
+                              frame.fields, result.outside_envelope if result else None,
+                              bool(result and result.envelope_checked))
+        self._checks.on_frame(header.stamp.sec * 1_000_000_000 + header.stamp.nanosec, answer)
+
     def _on_set_parameters(self, params: list) -> SetParametersResult:
         for p in params:
             if p.name == "overlay_alpha" and not 0.0 <= float(p.value) <= 1.0:
                 return SetParametersResult(successful=False, reason="overlay_alpha in [0, 1]")
         for p in params:
-            if p.name in ("publish_overlay", "overlay_alpha", "publish_markers"):
+            if p.name in ("publish_overlay", "overlay_alpha", "publish_markers",
+                          "check_timeout_s"):
                 self._params[p.name] = p.value
         return SetParametersResult(successful=True)
 
@@ -280,6 +326,7 @@ class OutcomeNode(Node):
             log.warning(f"skipping depth frame (frame_id '{msg.header.frame_id}'): "
                         f"{frame.error}", throttle_duration_sec=WARN_THROTTLE_S)
             self._publish_status(msg.header, frame.fields)
+            self._answer_checks(msg.header, frame)
             return
         if frame.result.outside_envelope:
             log.warning(
@@ -290,6 +337,7 @@ class OutcomeNode(Node):
         # Labels and status first: they are what a manipulation stack waits for.
         self._pub_labels.publish(_image_msg(msg.header, frame.labels, "mono8"))
         self._publish_status(msg.header, frame.fields)
+        self._answer_checks(msg.header, frame)
         if frame.overlay is not None:
             self._pub_overlay.publish(_image_msg(msg.header, frame.overlay, "rgb8"))
         if self._params["publish_markers"]:
@@ -304,7 +352,12 @@ class OutcomeNode(Node):
         self._publish_status(header, R.error_fields(why, dropped=dropped,
                                                     latency_ms=_latency_ms(t_received)))
 
+    def release_checks(self) -> None:
+        """Answer waiting outcome/check requests now, so the executor can shut down."""
+        self._checks.release_all("outcome_node is shutting down")
+
     def destroy_node(self) -> None:
+        self.release_checks()
         with self._lock:
             self._stop = True
             self._lock.notify_all()
@@ -319,6 +372,17 @@ def status_array(header: Header, fields: R.StatusFields) -> DiagnosticArray:
                               message=fields.message, hardware_id=header.frame_id,
                               values=[KeyValue(key=k, value=v) for k, v in fields.values])
     return DiagnosticArray(header=header, status=[status])
+
+
+class _NextSpin:
+    """Awaitable that gives control back to the executor until its next spin."""
+
+    def __await__(self):
+        yield
+
+
+def _next_spin() -> _NextSpin:
+    return _NextSpin()
 
 
 def _image_msg(header: Header, pixels: np.ndarray, encoding: str) -> Image:
@@ -391,12 +455,16 @@ def main(args: list[str] | None = None) -> int:
         # and Python runs our SIGINT handler only between waits.
         while rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
+            if node.checks_waiting():
+                time.sleep(CHECK_SPIN_PAUSE_S)
     except StartupError as exc:
         rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
         return 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if node is not None:
+            node.release_checks()
         if executor is not None:
             executor.shutdown()
         if node is not None:

@@ -26,15 +26,24 @@ BAND_SPLIT_M = float(model.DEFAULT_NORMALISATION["offset_m"])
 BAND_FAR, BAND_NEAR = OUTCOME_IDS["success"], OUTCOME_IDS["fell_outside"]
 
 
-def _save(path: Path, net: torch.nn.Module) -> Path:
+# The default task's camera envelope as a checkpoint's dataset config carries it (only the
+# fields task_outcome_ros.envelope reads), for models whose frames should be checked.
+DEFAULT_ENVELOPE_CONFIG = {"task": "default", "camera": {
+    "width": 640, "height": 480, "focal_px": [525.0, 590.0], "distance": [1.6, 2.4]}}
+
+
+def _save(path: Path, net: torch.nn.Module, dataset: dict | None = None) -> Path:
     return checkpoint.save(path, net, model_args=dict(model.DEFAULT_MODEL_ARGS),
                            input_size=model.DEFAULT_INPUT_SIZE,
                            normalisation=dict(model.DEFAULT_NORMALISATION),
-                           train_config={}, metrics={})
+                           train_config={"dataset": dataset} if dataset else {}, metrics={})
 
 
-def make_checkpoint(path: Path, favour: int | None = None, seed: int = 0) -> Path:
-    """A random-init checkpoint; ``favour`` = a class id whose head bias wins everywhere."""
+def make_checkpoint(path: Path, favour: int | None = None, seed: int = 0,
+                    dataset: dict | None = None) -> Path:
+    """A random-init checkpoint; ``favour`` = a class id whose head bias wins everywhere;
+    ``dataset`` (e.g. DEFAULT_ENVELOPE_CONFIG): the training envelope frames are checked
+    against (None: unchecked)."""
     torch.manual_seed(seed)
     net = model.build_model(dict(model.DEFAULT_MODEL_ARGS))
     if favour is not None:
@@ -42,7 +51,7 @@ def make_checkpoint(path: Path, favour: int | None = None, seed: int = 0) -> Pat
             net.head.weight.mul_(0.01)
             net.head.bias.zero_()
             net.head.bias[favour] = 10.0
-    return _save(path, net)
+    return _save(path, net, dataset)
 
 
 def make_depth_band_checkpoint(path: Path) -> Path:

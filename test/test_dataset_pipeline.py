@@ -120,6 +120,33 @@ def test_worker_count_does_not_change_a_byte(runs):
                                                          chunk_size=CHUNK)
 
 
+def test_the_tote_spec_is_deterministic_and_labels_its_own_scene(tmp_path):
+    """Same seed, same bytes, whatever the worker count, for a spec that draws its fixture,
+    table and shapes per episode; the labels sit on the objects the geometry says."""
+    runs = {}
+    for workers in (1, 2):
+        runs[workers] = tmp_path / f"tote_w{workers}"
+        _cli("dataset", "--scene", "tote", "--episodes", "8", "--chunk-size", "4", "--seed",
+             "2", "--workers", str(workers), "--out", str(runs[workers]))
+    _assert_same_bytes(runs[1], runs[2], skip=("timings.json", "config.json"))
+    cfg, episodes, outcomes = _load_run(runs[1])
+    assert cfg.task == "tote" and cfg.scene.table_size is not None
+    shapes = {o["shape"] for e in episodes for o in e["objects"]}
+    sizes = {(e["fixture"]["half_x"], e["fixture"]["half_y"]) for e in episodes}
+    assert len(sizes) == len(episodes)  # a footprint of its own per episode
+    for e in episodes:
+        f = e["fixture"]
+        assert 0.15 <= f["half_x"] <= 0.40 and 0.125 <= f["half_y"] <= 0.30
+        assert 0.10 <= f["wall_height"] <= 0.30 and f["table"] is not None
+    manifest = load_json(runs[1] / "manifest.json")
+    for im, names in zip(manifest["images"], outcomes):
+        _, labels = read_pair(runs[1], im["episode"])
+        seen = {name for name in names if (labels == OUTCOME_IDS[name]).any()}
+        assert im["present"] == outcomes_present(labels)
+        assert seen <= set(names)
+    assert shapes <= {"box", "cylinder"}
+
+
 def test_killed_run_resumes_to_identical_bytes(runs, tmp_path):
     """SIGKILL the whole process group mid-render, leave stray temp files, run again."""
     out = tmp_path / "resumed"

@@ -87,3 +87,4 @@ def test_encode_then_decode_round_trips(encoding):
     data, step = encode_depth(_expected_metres(), encoding)
     got = decode_depth(encoding, 2, 3, step, False, data)
     np.testing.assert_allclose(got, _expected_metres(), rtol=0, atol=1e-6)
+

@@ -205,6 +205,26 @@ def test_missing_default_model_names_path_and_command(tmp_path: Path, monkeypatc
     assert str(missing) in str(info.value) and "python -m training train" in str(info.value)
 
 
+def test_shipped_models_are_found_by_name(tmp_path: Path, monkeypatch) -> None:
+    """model_path takes a shipped model's name (its file beside the default one) or a path."""
+    models = tmp_path / "models"
+    _make_checkpoint(models / "outcome_fcn.pt")
+    _make_checkpoint(models / "outcome_fcn_tote.pt")
+    monkeypatch.setattr(inference, "models_dir", lambda: models)
+    monkeypatch.setattr(inference, "default_model_path", lambda: models / "outcome_fcn.pt")
+    assert inference.shipped_models() == ["default", "tote"]
+    assert inference.resolve_model_path("tote") == models / "outcome_fcn_tote.pt"
+    assert inference.resolve_model_path("default") == models / "outcome_fcn.pt"
+    assert inference.resolve_model_path("") == inference.resolve_model_path(None)
+    own = tmp_path / "mine.pt"
+    assert inference.resolve_model_path(str(own)) == own  # a path, even a missing one
+    with pytest.raises(CheckpointError) as info:
+        inference.resolve_model_path("shelf")
+    assert "no shipped model named 'shelf'" in str(info.value)
+    assert "default, tote" in str(info.value) and "--scene shelf --ship" in str(info.value)
+    assert OutcomeSegmenter("tote").model_path == models / "outcome_fcn_tote.pt"
+
+
 @pytest.fixture(scope="module")
 def onnx_ckpt(tmp_path_factory) -> Path:
     pytest.importorskip("onnx")

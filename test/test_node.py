@@ -31,7 +31,12 @@ import cv2  # noqa: E402
 import node_helpers as nh  # noqa: E402
 import rcl_interfaces.srv as rcl_srv  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
-from model_helpers import BAND_FAR, BAND_NEAR, BAND_SPLIT_M  # noqa: E402
+from model_helpers import (  # noqa: E402
+    BAND_FAR,
+    BAND_NEAR,
+    BAND_SPLIT_M,
+    DEFAULT_ENVELOPE_CONFIG,
+)
 from rclpy.parameter import Parameter  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
@@ -131,10 +136,18 @@ def check_reply(request, reply) -> np.ndarray:
                 u, v = (float(c) for c in values[f"{name}.{k}.centroid_px"].split(","))
                 assert 0 <= u <= w - 1 and 0 <= v <= h - 1
             assert f"{name}.{n_objects}.centroid_px" not in values
-    expected = sorted(n for n, p in present.items() if p)
-    assert status.message == (",".join(expected) if expected else "none")
+    expected = ",".join(sorted(n for n, p in present.items() if p)) or "none"
     failure = any(present[n] for n in L.FAILURE_OUTCOMES)
-    assert status.level == (DiagnosticStatus.WARN if failure else DiagnosticStatus.OK)
+    outside = values["envelope"].startswith("outside: ")
+    if outside:  # never OK, and the message says why
+        assert status.message == f"{expected}; outside the trained envelope: " \
+            + values["envelope"].removeprefix("outside: ")
+    else:
+        assert status.message == expected
+        assert values["envelope"] in ("ok", "unchecked: the checkpoint records no training "
+                                              "envelope")
+    assert status.level == (DiagnosticStatus.WARN if failure or outside
+                            else DiagnosticStatus.OK)
     assert float(values["inference_ms"]) >= 0 and float(values["latency_ms"]) >= 0
     assert int(values["dropped_frames"]) >= 0
     return labels
@@ -499,16 +512,18 @@ def test_package_imports_without_rclpy():
 TRAINING_ONLY = ("pybullet", "sklearn", "matplotlib", "training")
 
 
-def test_node_starts_and_answers_without_training_dependencies(tmp_path):
-    """The node imports and answers a frame in a process where pybullet, scikit-learn,
-    matplotlib and ``training`` cannot be imported (any import of them raises)."""
+def test_node_without_training_dependencies_flags_frames_outside_its_envelope(tmp_path):
+    """The node imports and answers in a process where pybullet, scikit-learn, matplotlib and
+    ``training`` cannot be imported; its model knows its training envelope, so a frame with no
+    container in it is WARN with the reason, although only success is present."""
     code = ("import sys\n"
             f"for name in {TRAINING_ONLY!r}:\n"
             "    sys.modules[name] = None\n"
             "from task_outcome_ros.node import main\n"
             "sys.exit(main(sys.argv))\n")
     domain = (DOMAIN_ID + 50) % 200 + 1
-    ckpt = nh.make_checkpoint(tmp_path / "success_everywhere.pt", favour=L.SUCCESS)
+    ckpt = nh.make_checkpoint(tmp_path / "success_everywhere.pt", favour=L.SUCCESS,
+                              dataset=DEFAULT_ENVELOPE_CONFIG)
     proc = nh.NodeProcess(["-p", f"model_path:={ckpt}"], domain, tmp_path / "node.log",
                           command=[sys.executable, "-c", code, "outcome_node"])
     client = nh.OutcomeClient(domain)
@@ -517,7 +532,18 @@ def test_node_starts_and_answers_without_training_dependencies(tmp_path):
         msg = nh.depth_msg(scene(60, 80), stamp=client.next_stamp())
         reply = client.request(msg, ("status", "labels"), resend_every=0.5)
         check_reply(msg, reply)
-        assert reply.status.status[0].message == "success"
+        (status,) = reply.status.status
+        assert status.level == DiagnosticStatus.WARN
+        assert status.message.startswith("success; outside the trained envelope: ")
+        assert "fixture not seen" in nh.status_values(reply.status)["envelope"]
+        client.spin_until(lambda: "outside what the model was trained for" in proc.log(), 5.0)
+        assert "Use the shipped model for this kind of cell" in proc.log()
+        # camera_info keeps coming, images do not: the node says they are being lost.
+        for _ in range(40):
+            client.info_pub.publish(nh.camera_info(80, 60, 70.0, 39.5, 29.5))
+            client.spin_until(lambda: False, 0.01)
+        assert client.spin_until(lambda: "large images are being lost" in proc.log(), 10.0)
+        assert "fastdds_shm.xml" in proc.log()
         modules = subprocess.run(
             [sys.executable, "-c", "import sys; import task_outcome_ros.node, "
              "task_outcome_ros.bag_tools, task_outcome_ros.replay, task_outcome_ros.live_bag; "

@@ -120,5 +120,7 @@ def test_a_run_folder_refuses_another_spec_but_resumes_its_own(tmp_path, capsys)
     assert resolve_dataset_config(again).episodes == 3  # the run's own size
     assert resolve_dataset_config(build_parser().parse_args(
         ["discover", "--out", str(out)])).task == "tote"  # no --scene: the run's own spec
-    assert main(["simulate", "--out", str(out), "--scene", "default"]) == 2
-    assert "different config" in capsys.readouterr().err
+    for stage in ("simulate", "discover", "render"):
+        assert main([stage, "--out", str(out), "--scene", "default"]) == 2
+        err = capsys.readouterr().err
+        assert "made with scene 'tote'" in err and "leave --scene out" in err, err

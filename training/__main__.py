@@ -54,6 +54,10 @@ def resolve_dataset_config(args: argparse.Namespace) -> DatasetConfig:
         run = dataset_config_from_dict(load_json(saved))
         cfg = load_scene(scene, episodes=run.episodes, seed=run.seed,
                          chunk_size=run.chunk_size, val_fraction=run.val_fraction)
+        if dataclasses.replace(cfg, workers=run.workers) != run:
+            raise ConfigError(f"{saved} was made with scene {run.task!r}, not with the spec "
+                              f"{scene!r} as given; use another --out, or leave --scene out "
+                              "to continue the run")
     elif scene is not None:
         cfg = load_scene(scene)
     elif saved.exists():

@@ -5,7 +5,9 @@
 3. start ``outcome_node`` as its own process (shipped model, default parameters);
 4. replay the bag to it over DDS and record what it publishes (``task_outcome_ros.live_bag``);
 5. score the answers with the paper's image-level metric, write a contact sheet of the
-   overlays as the node published them, and ``summary.json``.
+   overlays as the node published them, and ``summary.json``;
+6. run ``examples/place_and_check.py`` against the same node: a manipulation stack's side,
+   asking ``outcome/check`` after each of a few places.
 
 Steps 1-2 and the contact sheet are training-side (pybullet, matplotlib); steps 3-5 use only
 what a robot installs.
@@ -27,6 +29,7 @@ from task_outcome_ros.labels import OUTCOME_NAMES
 from task_outcome_ros.live_bag import run_live
 
 DEFAULT_OUT = Path("runs/demo")
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 BAG_RATE_HZ = 5.0
 
 
@@ -83,10 +86,11 @@ def contact_sheet(path: Path, received: dict, ground_truth: dict, scores: dict,
 def run_demo(out: Path, episodes: int = 40, seed: int = 2026, timeout_s: float = 60.0) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    print(f"[demo] 1-2/5 simulating {episodes} episodes (seed {seed}) and exporting a bag")
+    print(f"[demo] 1-2/6 simulating {episodes} episodes (seed {seed}) and exporting a bag")
     bag = make_data(out, episodes, seed)
     live = run_live(bag, out, rate_hz_note=f" at {BAG_RATE_HZ:g} Hz", timeout_s=timeout_s,
-                    log=lambda text: print(f"[demo] 3-4/5 {text}"))
+                    log=lambda text: print(f"[demo] 3-4/6 {text}"),
+                    then=lambda env: place_and_check(bag, env))
     contact_sheet(out / "contact_sheet.png", live.received, live.ground_truth, live.scores)
     latency = live.latencies_ms()
     scores = live.scores
@@ -103,11 +107,19 @@ def run_demo(out: Path, episodes: int = 40, seed: int = 2026, timeout_s: float =
     }
     (out / "summary.json").write_text(json.dumps({**summary, "scores": scores}, indent=1))
     p50 = summary["node_latency_ms_p50"]
-    print(f"[demo] 5/5 {summary['frames_answered']}/{live.frames_sent} frames answered, "
+    print(f"[demo] 5/6 {summary['frames_answered']}/{live.frames_sent} frames answered, "
           f"{summary['image_all_correct']:.1%} all-correct, node latency p50 "
           f"{'n/a' if p50 is None else f'{p50:.1f}'} ms; contact sheet: "
           f"{out / 'contact_sheet.png'}")
     return summary
+
+
+def place_and_check(bag: Path, env: dict[str, str], places: int = 5) -> None:
+    """Step 6: the example client asks the running node about a few places."""
+    print(f"[demo] 6/6 examples/place_and_check.py: {places} places, each checked with "
+          "outcome/check")
+    subprocess.run([sys.executable, str(EXAMPLES / "place_and_check.py"), str(bag),
+                    "--places", str(places)], env=env, check=True, timeout=120)
 
 
 def add_demo_args(p: argparse.ArgumentParser) -> None:

@@ -1,0 +1,137 @@
+"""The trained envelope (task_outcome_ros/envelope.py): which frames the model can judge.
+
+Frames are rendered by the training renderer from hand-made scenes (no physics), through the
+shipped default model, so the cases are the ones the node meets: a frame from its own
+envelope, the same container seen from a tote camera's distance, a tote frame, a flat plane
+with no container, depth far out of range, and a camera with another focal length.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from task_outcome_ros.camera import Intrinsics
+from task_outcome_ros.envelope import Envelope, FrameStats, check, envelope_value, frame_stats
+from task_outcome_ros.inference import OutcomeSegmenter, default_model_path
+from training.config import to_dict
+from training.fixture import Fixture, Table
+from training.render import Camera, look_at, render, scene_boxes
+from training.scene import load_scene
+
+pytestmark = pytest.mark.unit
+
+DEFAULT = Envelope.from_dataset_config(to_dict(load_scene("default")))
+TOTE = Envelope.from_dataset_config(to_dict(load_scene("tote")))
+
+
+def _frame(fixture: Fixture, distance: float, elevation: float = 55.0, f: float = 557.5,
+           boxes: tuple = ()) -> tuple[np.ndarray, Intrinsics]:
+    """A clean 640 x 480 render of ``fixture`` (and objects) from ``distance`` m."""
+    episode = {"container_yaw": fixture.yaw, "floor_z": fixture.base_z,
+               "fixture": fixture.to_record(), "objects": list(boxes)}
+    target = fixture.centre()
+    el, az = math.radians(elevation), math.radians(30.0)
+    pos = target + distance * np.array([math.cos(el) * math.cos(az),
+                                        math.cos(el) * math.sin(az), math.sin(el)])
+    cam = Camera(640, 480, f, f, 319.5, 239.5, pos, look_at(pos, target, 30.0))
+    depth, _, _ = render(scene_boxes(episode, ["success"] * len(boxes), load_scene("default")
+                                     .scene), fixture.room_floor_z, cam)
+    return depth, Intrinsics(640, 480, f, f, 319.5, 239.5)
+
+
+CONTAINER = Fixture(0.5, 0.5, 0.25, 0.02, 0.02, 0.0, 0.0, 0.3, 0.0)
+A_TOTE = Fixture(0.3, 0.2, 0.2, 0.01, 0.01, 0.0, 0.0, 0.2, 0.75,
+                 Table(0.9, 0.7, 0.0, 0.0, 0.75, 0.0))
+BOX = {"shape": "box", "size": [0.2, 0.15, 0.1], "position": [0.1, 0.0, 0.07],
+       "orientation": [0.0, 0.0, 0.0, 1.0]}
+
+
+@pytest.fixture(scope="module")
+def segmenter() -> OutcomeSegmenter:
+    if not default_model_path().is_file():
+        pytest.skip("no shipped model (make ship trains one)")
+    return OutcomeSegmenter(backend="torch")
+
+
+def test_the_envelope_comes_from_the_checkpoint_it_was_trained_for(segmenter):
+    assert segmenter.envelope == DEFAULT  # also from a checkpoint saved before scene specs
+    assert DEFAULT.distance_m == (1.6, 2.4) and TOTE.distance_m == (0.5, 1.3)
+    assert Envelope.from_dataset_config({}) is None
+
+
+@pytest.mark.parametrize("distance", [1.6, 2.0, 2.4])
+def test_frames_of_its_own_envelope_are_inside(segmenter, distance):
+    depth, k = _frame(CONTAINER, distance, boxes=(BOX,))
+    result = segmenter.segment(depth, k)
+    assert result.outside_envelope == [], result.stats
+    assert result.stats.fixture_fraction > 0.05 and result.stats.support_fraction > 0.2
+
+
+@pytest.mark.parametrize("case,says", [
+    ("container from a tote camera's distance", "median depth"),
+    ("a tote on a table, tote camera", "median depth"),
+    ("a flat floor, no container", "fixture not seen"),
+    ("nothing within range", "median depth 6.00 m"),
+    ("a wide-angle camera", "fx 380 px"),
+])
+def test_frames_outside_the_envelope_are_flagged_with_the_reason(segmenter, case, says):
+    intrinsics = None
+    if case == "container from a tote camera's distance":
+        depth, intrinsics = _frame(CONTAINER, 0.9)
+    elif case == "a tote on a table, tote camera":
+        depth, intrinsics = _frame(A_TOTE, 0.8, elevation=80.0, f=500.0, boxes=(
+            {**BOX, "position": [0.0, 0.0, 0.8]},))
+    elif case == "a flat floor, no container":
+        depth = np.full((480, 640), 2.0, np.float32)
+    elif case == "nothing within range":
+        depth = np.full((480, 640), 6.0, np.float32)
+    else:
+        depth, _ = _frame(CONTAINER, 2.0)
+        intrinsics = Intrinsics(640, 480, 380.0, 380.0, 319.5, 239.5)
+    result = segmenter.segment(depth, intrinsics)
+    assert any(says in why for why in result.outside_envelope), result.outside_envelope
+    assert envelope_value(result.outside_envelope).startswith("outside: ")
+
+
+def test_the_tote_envelope_refuses_default_frames_and_takes_its_own():
+    far = FrameStats(0.95, 2.1, 0.5, 0.2)  # a default-task frame
+    assert check(TOTE, far) == ["median depth 2.10 m, trained 0.5-1.3 m"]
+    assert check(TOTE, FrameStats(0.9, 0.95, 0.4, 0.05)) == []
+    k = Intrinsics(1280, 720, 900.0, 900.0, 639.5, 359.5)  # 450 px at 640: in 380-620
+    assert check(TOTE, FrameStats(0.9, 0.95, 0.4, 0.05), k) == []
+    assert check(None, far) == []  # nothing to check against
+
+
+def test_frame_stats_on_a_hand_made_frame():
+    depth = np.full((4, 5), 1.0, np.float32)
+    depth[0] = np.nan
+    labels = np.zeros((4, 5), np.uint8)
+    labels[1, :3] = 1
+    heights = np.where(np.isfinite(depth), 0.0, np.nan)
+    heights[3] = 0.2
+    stats = frame_stats(depth, labels, heights, fixture_id=1)
+    assert stats == FrameStats(0.75, 1.0, 10 / 15, 3 / 15)
+    assert check(DEFAULT, stats) == ["median depth 1.00 m, trained 1.6-2.4 m"]
+    empty = frame_stats(np.full((2, 2), np.nan), np.zeros((2, 2), np.uint8), None, 1)
+    assert "only 0% of the pixels have depth" in check(DEFAULT, empty)
+
+
+def test_transport_monitor_warns_once_when_images_go_missing():
+    from task_outcome_ros.transport import MIN_INFOS, TransportMonitor
+
+    healthy = TransportMonitor()
+    for _ in range(3 * MIN_INFOS):
+        healthy.on_image()
+        assert healthy.on_camera_info() is None
+    lossy = TransportMonitor()
+    said = []
+    for k in range(3 * MIN_INFOS):
+        if k % 4 == 0:  # one image in four arrives
+            lossy.on_image()
+        said.append(lossy.on_camera_info())
+    warnings = [s for s in said if s]
+    assert len(warnings) == 1 and "fastdds_shm.xml" in warnings[0]
+    assert said.index(warnings[0]) == MIN_INFOS - 1  # as soon as there is enough evidence
