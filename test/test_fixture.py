@@ -186,3 +186,49 @@ def _rotation(obj: dict) -> np.ndarray:
     from training.geometry import quat_to_matrix
 
     return quat_to_matrix(obj["orientation"])
+
+
+def test_sensor_parameters_given_as_ranges_are_drawn_per_frame_and_recorded():
+    import dataclasses
+
+    from training.config import DatasetConfig, NoiseConfig
+    from training.render import render_episode
+
+    noise = NoiseConfig(sigma_disparity_px=(0.03, 0.12), speckle_max_radius_px=(1, 5),
+                        max_range=(3.5, 4.5)).validate()
+    cfg = dataclasses.replace(DatasetConfig(), noise=noise).validate()
+    episode = {"episode": 0, "container_yaw": 0.2, "floor_z": 0.0, "objects": []}
+    records = [render_episode({**episode, "episode": k}, [], cfg, seed=4)["record"]
+               for k in range(4)]
+    sigmas = [r["sensor"]["sigma_disparity_px"] for r in records]
+    assert all(0.03 <= s <= 0.12 for s in sigmas) and len(set(sigmas)) == 4
+    assert all(r["sensor"]["speckle_max_radius_px"] in range(1, 6) for r in records)
+    assert all(r["sensor"]["baseline"] == 0.075 for r in records)  # fixed stays fixed
+    again = render_episode({**episode, "episode": 2}, [], cfg, seed=4)
+    assert again["record"]["sensor"] == records[2]["sensor"]
+    fixed = render_episode(episode, [], DatasetConfig(), seed=4)["record"]
+    assert "sensor" not in fixed  # a spec without ranges records (and draws) nothing new
+
+
+def test_a_tilted_support_leans_gravity_and_looks_tilted_to_a_level_camera():
+    tilted = Fixture(0.5, 0.5, 0.25, 0.02, 0.02, 0.0, 0.0, 0.0, 0.0, tilt_deg=6.0,
+                     tilt_azimuth_deg=40.0)
+    g = np.array(tilted.gravity())
+    assert np.linalg.norm(g) == pytest.approx(9.81)
+    assert math.degrees(math.acos(-g[2] / 9.81)) == pytest.approx(6.0)
+    assert Fixture(0.5, 0.5, 0.25, 0.02, 0.02, 0.0, 0.0, 0.0, 0.0).gravity() == [0, 0, -9.81]
+    # A camera straight down (against the true vertical) sees the floor inclined by 6 deg.
+    from training.config import CameraConfig
+    from training.render import draw_camera
+
+    cam_cfg = CameraConfig(elevation_deg=(90.0, 90.0), distance=(2.0, 2.0), target_offset=0.0)
+    camera, _ = draw_camera(cam_cfg, tilted, np.random.default_rng(0))
+    episode = {"container_yaw": 0.0, "floor_z": 0.0, "fixture": tilted.to_record(),
+               "objects": []}
+    depth, labels, _ = render(scene_boxes(episode, [], SCENE), tilted.room_floor_z, camera)
+    v, u = np.nonzero(labels == 0)
+    x = (u - camera.cx) / camera.fx * depth[v, u]
+    y = (v - camera.cy) / camera.fy * depth[v, u]
+    a = np.column_stack([x, y, np.ones_like(x)])
+    gx, gy, _ = np.linalg.lstsq(a, depth[v, u], rcond=None)[0]  # z = gx x + gy y + c
+    assert math.degrees(math.atan(math.hypot(gx, gy))) == pytest.approx(6.0, abs=0.05)

@@ -67,6 +67,10 @@ def test_a_spec_may_leave_fields_to_the_default_task(tmp_path):
     ("camera", "elevation_deg", [45.0, 95.0], ["camera.elevation_deg[1]", "[5.0, 90.0]"]),
     ("camera", "target_offset", 0.2, ["camera.target_offset", "could leave the fixture"]),
     ("noise", "model", "tof", ["noise.model", "kinect_v1"]),
+    ("noise", "sigma_disparity_px", [0.1, 0.03], ["noise.sigma_disparity_px", "min must not"]),
+    ("noise", "sigma_disparity_px", [0.03, 3.0], ["noise.sigma_disparity_px[1]", "[0.0, 2.0]"]),
+    ("noise", "speckle_max_radius_px", [1, 2.5], ["speckle_max_radius_px[1]", "whole number"]),
+    ("noise", "max_range", [0.2, 4.5], ["noise.max_range", "must exceed min_range"]),
     ("noise", "enabled", "yes", ["noise.enabled", "true or false"]),
 ])
 def test_bad_fields_are_refused_naming_file_field_and_range(tmp_path, section, field, value,

@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 
 class ConfigError(ValueError):
     """A config value outside its allowed range; the message names the field and the range."""
@@ -67,6 +69,9 @@ class SceneConfig:
     table_size: tuple[float, float] | None = None            # m (x, y) of the table top
     table_height: tuple[float, float] = (0.75, 0.75)         # m, table top above the room floor
     table_offset: float = 0.0             # m, table centre uniform in +-this from the fixture
+    # The support's tilt from level (deg), towards a uniformly drawn direction: real floors
+    # and tables are rarely level, and cameras are placed against the true vertical.
+    support_tilt_deg: tuple[float, float] = (0.0, 0.0)
     # The objects.
     min_objects: int = 1
     max_objects: int = 4
@@ -118,6 +123,7 @@ class SceneConfig:
                 raise ConfigError(f"{o}.table_size must be (x, y), got {self.table_size!r}")
         _check_interval(o, "table_height", self.table_height, 0.2, 2.0)
         _check_range(o, "table_offset", self.table_offset, 0.0, 5.0)
+        _check_interval(o, "support_tilt_deg", self.support_tilt_deg, 0.0, 15.0)
         _check_int(o, "min_objects", self.min_objects, 1, 8)
         _check_int(o, "max_objects", self.max_objects, self.min_objects, 8)
         self._validate_shapes(o)
@@ -204,7 +210,9 @@ class CameraConfig:
 
 @dataclass(frozen=True)
 class NoiseConfig:
-    """Kinect-v1 structured-light noise (see training/noise.py for the models and citations)."""
+    """Kinect-v1 structured-light noise (see training/noise.py for the models and citations).
+
+    Each parameter is a fixed value or a (min, max) range drawn per frame (``draw``)."""
 
     enabled: bool = True
     model: str = "kinect_v1"              # the named sensor model (training/noise.py)
@@ -228,18 +236,61 @@ class NoiseConfig:
             raise ConfigError(f"{o}.enabled = {self.enabled!r}: expected true or false")
         if self.model not in NOISE_MODELS:
             raise ConfigError(f"{o}.model = {self.model!r}: expected one of {NOISE_MODELS}")
-        _check_range(o, "baseline", self.baseline, 0.01, 0.5)
-        _check_int(o, "disparity_subpixel", self.disparity_subpixel, 1, 64)
-        _check_range(o, "sigma_disparity_px", self.sigma_disparity_px, 0.0, 2.0)
-        _check_range(o, "grazing_sigma", self.grazing_sigma, 0.0, 0.01)
-        _check_range(o, "lateral_sigma_px", self.lateral_sigma_px, 0.0, 5.0)
-        _check_range(o, "grazing_start_deg", self.grazing_start_deg, 0.0, 90.0)
-        _check_range(o, "grazing_full_deg", self.grazing_full_deg, self.grazing_start_deg, 90.0)
-        _check_range(o, "speckle_rate", self.speckle_rate, 0.0, 0.05)
-        _check_int(o, "speckle_max_radius_px", self.speckle_max_radius_px, 0, 20)
-        _check_range(o, "min_range", self.min_range, 0.0, 10.0)
-        _check_range(o, "max_range", self.max_range, self.min_range, 20.0)
+        for name, (lo, hi) in _NOISE_LIMITS.items():
+            value = getattr(self, name)
+            check = _check_int if name in _NOISE_INTS else _check_range
+            if isinstance(value, (tuple, list)):
+                _check_interval(o, name, value, lo, hi)
+                if name in _NOISE_INTS:
+                    for k, v in enumerate(value):
+                        _check_int(o, f"{name}[{k}]", v, lo, hi)
+            else:
+                check(o, name, value, lo, hi)
+        # Every draw must keep the ramp and the range ordered.
+        if self.bounds("grazing_full_deg")[0] < self.bounds("grazing_start_deg")[1]:
+            raise ConfigError(f"{o}.grazing_full_deg = {self.grazing_full_deg!r} must not be "
+                              f"below grazing_start_deg = {self.grazing_start_deg!r}")
+        if self.bounds("max_range")[0] <= self.bounds("min_range")[1]:
+            raise ConfigError(f"{o}.max_range = {self.max_range!r} must exceed min_range = "
+                              f"{self.min_range!r}")
         return self
+
+    def bounds(self, name: str) -> tuple[float, float]:
+        """A parameter's (lowest, highest) value: a range, or a fixed value twice."""
+        value = getattr(self, name)
+        return tuple(value) if isinstance(value, (tuple, list)) else (value, value)
+
+    def midpoint(self, name: str) -> float:
+        lo, hi = self.bounds(name)
+        return (lo + hi) / 2
+
+    def draw(self, rng: np.random.Generator) -> NoiseConfig:
+        """This frame's sensor: every parameter given as a (min, max) range drawn uniformly
+        (whole numbers for the integer ones), in field order; fixed ones stay, drawing
+        nothing, so a spec without ranges makes exactly the frames it always made."""
+        drawn = {}
+        for name in _NOISE_LIMITS:
+            value = getattr(self, name)
+            if isinstance(value, (tuple, list)):
+                lo, hi = value
+                drawn[name] = (int(rng.integers(lo, hi + 1)) if name in _NOISE_INTS
+                               else float(rng.uniform(lo, hi)))
+        return dataclasses.replace(self, **drawn) if drawn else self
+
+    def drawn_per_frame(self) -> bool:
+        return any(isinstance(getattr(self, n), (tuple, list)) for n in _NOISE_LIMITS)
+
+
+# The sensor parameters a spec may fix or give as a (min, max) range drawn per frame, with
+# their allowed limits.
+_NOISE_LIMITS = {
+    "baseline": (0.01, 0.5), "disparity_subpixel": (1, 64),
+    "sigma_disparity_px": (0.0, 2.0), "grazing_sigma": (0.0, 0.01),
+    "lateral_sigma_px": (0.0, 5.0), "grazing_start_deg": (0.0, 90.0),
+    "grazing_full_deg": (0.0, 90.0), "speckle_rate": (0.0, 0.05),
+    "speckle_max_radius_px": (0, 20), "min_range": (0.0, 10.0), "max_range": (0.0, 20.0),
+}
+_NOISE_INTS = ("disparity_subpixel", "speckle_max_radius_px")
 
 
 @dataclass(frozen=True)
@@ -298,11 +349,13 @@ class DatasetConfig:
         """The sensor must measure the fixture from every distance of the envelope, and the
         look-at point must stay over the fixture's inner footprint."""
         near, far = self.camera.distance
-        if self.noise.enabled and (near < self.noise.min_range or far > self.noise.max_range):
+        sensor_near = self.noise.bounds("min_range")[1]  # the narrowest range any frame draws
+        sensor_far = self.noise.bounds("max_range")[0]
+        if self.noise.enabled and (near < sensor_near or far > sensor_far):
             raise ConfigError(
                 f"camera.distance = {list(self.camera.distance)} m: the sensor measures "
-                f"{self.noise.min_range}-{self.noise.max_range} m (noise.min_range, "
-                "noise.max_range), so it could not see the fixture from every distance")
+                f"{sensor_near}-{sensor_far} m (noise.min_range, noise.max_range), so it "
+                "could not see the fixture from every distance")
         smallest_half = min(self.scene.inner_size_x[0], self.scene.inner_size_y[0]) / 2
         if self.camera.target_offset > smallest_half:
             raise ConfigError(

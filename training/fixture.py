@@ -49,6 +49,24 @@ class Fixture:
     yaw: float               # rad, about z
     base_z: float            # m, the support plane the container stands on
     table: Table | None = None
+    # The support's tilt from level: this many degrees, about a horizontal axis at this
+    # azimuth. Simulation and geometry work in the support's frame (z normal to it), so a tilt
+    # is gravity leaning in that frame, and cameras, placed against the true vertical, see
+    # the whole scene tilted.
+    tilt_deg: float = 0.0
+    tilt_azimuth_deg: float = 0.0
+
+    def tilt_rotation(self) -> np.ndarray:
+        """Support frame -> true (gravity-aligned) frame: the tilt about its horizontal axis."""
+        angle, az = math.radians(self.tilt_deg), math.radians(self.tilt_azimuth_deg)
+        axis = np.array([math.cos(az), math.sin(az), 0.0])
+        k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]],
+                      [-axis[1], axis[0], 0.0]])
+        return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+
+    def gravity(self) -> list[float]:
+        """Gravity in the support's frame (the simulation's)."""
+        return [float(v) for v in self.tilt_rotation().T @ np.array([0.0, 0.0, -9.81])]
 
     @property
     def room_floor_z(self) -> float:
@@ -136,5 +154,9 @@ def draw_fixture(scene: SceneConfig, yaw: float, base_z: float,
         tx, ty = (float(v) for v in rng.uniform(-toff, toff, 2)) if toff > 0 else (0.0, 0.0)
         table = Table(scene.table_size[0] / 2, scene.table_size[1] / 2, x + tx, y + ty,
                       base_z, base_z - height)
+    tilt, tilt_azimuth = 0.0, 0.0
+    if scene.support_tilt_deg[1] > 0:
+        tilt = _uniform(rng, scene.support_tilt_deg)
+        tilt_azimuth = float(rng.uniform(0.0, 360.0))
     return Fixture(half_x, half_y, wall_height, scene.wall_thickness, scene.bottom_thickness,
-                   x, y, yaw, base_z, table)
+                   x, y, yaw, base_z, table, tilt, tilt_azimuth)

@@ -34,6 +34,10 @@ from training.noise import apply_kinect_noise
 from training.seeding import episode_rng, episode_seed
 
 NEAR = 0.05  # m: hits closer than this to the camera are ignored
+# The sensor parameters a manifest records for each frame when a spec draws them per frame.
+SENSOR_RECORD = ("baseline", "disparity_subpixel", "sigma_disparity_px", "grazing_sigma",
+                 "lateral_sigma_px", "grazing_start_deg", "grazing_full_deg", "speckle_rate",
+                 "speckle_max_radius_px", "min_range", "max_range")
 
 
 @dataclass(frozen=True)
@@ -93,6 +97,12 @@ def draw_camera(cam: CameraConfig, fixture: Fixture,
     position = target + distance * np.array([math.cos(el) * math.cos(az),
                                              math.cos(el) * math.sin(az), math.sin(el)])
     rotation = look_at(position, target, azimuth, roll)
+    if fixture.tilt_deg:  # into the support's frame, where the scene is: it looks tilted
+        tilt = fixture.tilt_rotation()
+        pivot = fixture.centre()
+        position = pivot + tilt.T @ (position - pivot)
+        target = pivot + tilt.T @ (target - pivot)
+        rotation = tilt.T @ rotation
     camera = Camera(cam.width, cam.height, f, f, cx, cy, position, rotation)
     draws = {"distance": distance, "elevation_deg": elevation, "azimuth_deg": azimuth,
              "roll_deg": roll, "look_at": target.tolist()}
@@ -252,7 +262,10 @@ def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
     camera, draws = draw_camera(cfg.camera, fixture, episode_rng(seed, index, "render"))
     clean, labels, cosine = render(scene_boxes(episode, outcomes, cfg.scene),
                                    fixture.room_floor_z, camera)
-    noisy, noisy_labels = apply_kinect_noise(clean, labels, cosine, camera.fx, cfg.noise,
+    # This frame's sensor: parameters the spec gives as ranges are drawn from a stream of
+    # their own, so fixed specs draw (and make) exactly what they always did.
+    sensor = cfg.noise.draw(episode_rng(seed, index, "sensor"))
+    noisy, noisy_labels = apply_kinect_noise(clean, labels, cosine, camera.fx, sensor,
                                              episode_rng(seed, index, "noise"))
     record = {
         "episode": index,
@@ -264,6 +277,8 @@ def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
         "present": outcomes_present(noisy_labels),
         "pixel_counts": outcome_pixel_counts(noisy_labels),
     }
+    if cfg.noise.drawn_per_frame():
+        record["sensor"] = {name: getattr(sensor, name) for name in SENSOR_RECORD}
     return {"clean": clean, "depth": noisy, "labels": noisy_labels, "record": record}
 
 

@@ -9,10 +9,11 @@ from __future__ import annotations
 import numpy as np
 
 # One stream per stage, so changing e.g. the renderer never changes the physics draws.
-# "fixture" holds the per-episode draws a spec added (footprint, wall height, table, shapes):
-# a stream of its own, so a spec with fixed values draws exactly what it drew before.
+# "fixture" holds the per-episode draws a spec added (footprint, wall height, table, shapes),
+# "sensor" the per-frame sensor parameters: streams of their own, so a spec with fixed values
+# draws exactly what it drew before.
 STAGE_STREAMS = {"simulate": 1, "render": 2, "noise": 3, "split": 4, "augment": 5,
-                 "fixture": 6}
+                 "fixture": 6, "sensor": 7}
 
 
 def episode_seed(run_seed: int, episode: int, stage: str) -> list[int]:

@@ -187,6 +187,7 @@ class World:
         pb, c, scene, fixture = self.pb, self.client, self.scene, draw.fixture
         self._prepare(fixture)
         self.episodes_since_build += 1
+        pb.setGravity(*fixture.gravity(), physicsClientId=c)  # leaning on a tilted support
         yaw_q = pb.getQuaternionFromEuler([0, 0, draw.container_yaw])
         pb.resetBasePositionAndOrientation(self.floor, [0, 0, fixture.room_floor_z],
                                            [0, 0, 0, 1], physicsClientId=c)

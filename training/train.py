@@ -90,8 +90,10 @@ def task_normalisation(dataset: DatasetConfig) -> dict:
 
 def sensor_noise_ratio(dataset: DatasetConfig) -> float:
     """The task's sensor noise over the default sensor's, for the augmentation noise."""
-    noise, camera = dataset.noise, dataset.camera
-    return noise.sigma_disparity_px / (camera.nominal_focal_px * noise.baseline) / _DEFAULT_AXIAL
+    noise, camera = dataset.noise, dataset.camera  # parameters drawn per frame: their midpoints
+    axial = noise.midpoint("sigma_disparity_px") / (camera.nominal_focal_px
+                                                    * noise.midpoint("baseline"))
+    return axial / _DEFAULT_AXIAL
 
 
 def class_weights(labels: np.ndarray, power: float) -> torch.Tensor:
