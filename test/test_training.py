@@ -349,3 +349,52 @@ def test_weight_average_follows_the_ema_formula():
         model[0].weight.mul_(3.0)
     copy.update(model)                  # decay 0: a plain copy of the current weights
     torch.testing.assert_close(copy.module[0].weight, model[0].weight)
+
+
+def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tmp_path):
+    """With no stress the suite's frame is the dataset's own image (same depth to the mm,
+    same labels); each factor changes what it should; the report and its plot are written."""
+    from training.chunks import load_chunks
+    from training.config import dataset_config_from_dict, load_json
+    from training.render import read_pair
+    from training.robustness import Stress, run_robustness, stressed_frame
+
+    cfg = dataset_config_from_dict(load_json(small_run / "config.json"))
+    episodes = load_chunks(small_run / "simulate", cfg.episodes, cfg.chunk_size)
+    outcomes = load_json(small_run / "outcomes.json")["outcomes"]
+    depth, labels, k = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed, Stress())
+    stored_depth, stored_labels = read_pair(small_run, 5)
+    np.testing.assert_array_equal(labels, stored_labels)
+    both = np.isfinite(depth) & np.isfinite(stored_depth)
+    assert np.array_equal(np.isfinite(depth), np.isfinite(stored_depth))
+    assert np.abs(depth[both] - stored_depth[both]).max() <= 0.0005 + 1e-6  # PNG: whole mm
+    small, _, k_small = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
+                                       Stress(resolution="320x240", focal_error=0.08))
+    assert small.shape == (240, 320) and k_small.fx == pytest.approx(k.fx / 2 * 1.08)
+    assert stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
+                          Stress(camera_info=False))[2] is None
+    tilted, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
+                                  Stress(support_tilt_deg=6.0))
+    assert not np.allclose(np.nan_to_num(tilted), np.nan_to_num(depth))
+
+    ckpt = make_checkpoint(tmp_path / "success_everywhere.pt", favour=SUCCESS)
+    sweeps = {"camera_roll_deg": (0.0, 10.0), "resolution": ("640x480", "320x240")}
+    report = run_robustness(ckpt, small_run, tmp_path / "rob", images=2, sweeps=sweeps,
+                            progress=False)
+    saved = load_json(tmp_path / "rob" / "robustness.json")
+    assert saved == json.loads(json.dumps(report))
+    assert saved["images"] == 2 and set(saved["factors"]) == set(sweeps)
+    manifest = load_json(small_run / "manifest.json")
+    val = [im["episode"] for im in manifest["images"] if im["split"] == "val"][:2]
+    for factor, values in sweeps.items():
+        entry = saved["factors"][factor]
+        assert entry["values"] == list(values)
+        for value, got in zip(values, entry["image_all_correct"]):
+            # The success-everywhere model is right exactly where only success is true.
+            truths = [outcomes_present(stressed_frame(episodes[i], outcomes[i], cfg, cfg.seed,
+                                                      Stress(**{factor: value}))[1])
+                      for i in val]
+            only = sum(t == {"success": True, "fell_outside": False, "stuck_on_rim": False}
+                       for t in truths)
+            assert got == pytest.approx(only / len(val)), (factor, value)
+    assert (tmp_path / "rob" / "robustness.png").stat().st_size > 5000

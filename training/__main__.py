@@ -232,6 +232,19 @@ def cmd_evaluate(args) -> None:
             for e in hard["by_rim_gap"]))
 
 
+def add_robustness_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT,
+                   help="run folder (default: %(default)s)")
+    p.add_argument("--checkpoint", default=None,
+                   help="a shipped model's name or a checkpoint (default: default)")
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset run whose validation episodes are re-rendered (default: --out)")
+    p.add_argument("--images", type=positive_int, default=100,
+                   help="validation episodes per stress point (default 100)")
+    p.add_argument("--eval-out", type=Path, default=None,
+                   help="where robustness.json goes (default: <out>/robustness)")
+
+
 def add_eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="model to evaluate (default: <out>/train/best.pt)")
@@ -253,6 +266,19 @@ def cmd_export_bag(args) -> None:
     from training.export_bag import cmd_export_bag
 
     cmd_export_bag(args)
+
+
+def cmd_robustness(args) -> None:
+    from training.robustness import run_robustness
+
+    data = args.data or Path(args.out)
+    out = args.eval_out or Path(args.out) / "robustness"
+    report = run_robustness(args.checkpoint, data, out, images=args.images)
+    for factor, entry in report["factors"].items():
+        pairs = ", ".join(f"{v}: {a:.3f}" for v, a in zip(entry["values"],
+                                                          entry["image_all_correct"]))
+        print(f"robustness {factor}: {pairs}")
+    print(f"robustness: {report['images']} images per point -> {out / 'robustness.json'}")
 
 
 def cmd_demo(args) -> int:
@@ -277,6 +303,7 @@ COMMANDS = {
     "evaluate": (cmd_evaluate, "evaluate a checkpoint with the paper's image-level metric"),
     "run": (cmd_run, "dataset + train + evaluate"),
     "export-bag": (cmd_export_bag, "write a run's images as a rosbag2 bag (+ ground truth)"),
+    "robustness": (cmd_robustness, "score a model on stress sets, one factor at a time"),
     "demo": (cmd_demo, "a small simulated bag through the live outcome_node, scored"),
 }
 
@@ -296,6 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
             from training.demo import add_demo_args
 
             add_demo_args(p)
+            continue
+        if name == "robustness":
+            add_robustness_args(p)
             continue
         add_dataset_args(p)
         if name in ("train", "run"):

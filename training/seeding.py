@@ -13,7 +13,7 @@ import numpy as np
 # "sensor" the per-frame sensor parameters: streams of their own, so a spec with fixed values
 # draws exactly what it drew before.
 STAGE_STREAMS = {"simulate": 1, "render": 2, "noise": 3, "split": 4, "augment": 5,
-                 "fixture": 6, "sensor": 7}
+                 "fixture": 6, "sensor": 7, "robustness": 8}
 
 
 def episode_seed(run_seed: int, episode: int, stage: str) -> list[int]:

@@ -1,0 +1,182 @@
+"""``python -m training robustness``: how a model holds up when the world departs from its
+training draws, one factor at a time.
+
+Each stress point re-renders the same validation episodes of a dataset run (their simulated
+final states and discovered outcomes, their own camera draws) with one factor changed, and
+scores the model through the node's code path (``OutcomeSegmenter.segment``) with the paper's
+image-level metric. Factors, each swept beyond what training drew:
+
+- ``support_tilt_deg``: the support seen tilted (towards a direction drawn per image); the
+  physics stays that of the level support, so only what the camera sees changes;
+- ``camera_roll_deg``: the camera turned about its optical axis;
+- ``noise_scale``: the sensor's disparity noise, edge jitter and speckle times this factor;
+- ``focal_error``: camera_info's focal length off by this fraction (the true camera is not);
+- ``camera_info``: with and without camera_info;
+- ``resolution``: other image sizes, with the focal length scaled to keep the field of view.
+
+There is one sensor model so far, so no sweep over sensor models. Writes ``robustness.json``
+(per factor its values and the all-correct at each, with the image count) and
+``robustness.png`` beside it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from task_outcome_ros.camera import Intrinsics
+from task_outcome_ros.inference import OutcomeSegmenter
+from task_outcome_ros.labels import OUTCOME_NAMES, outcomes_present
+from training.chunks import load_chunks
+from training.config import DatasetConfig, dataset_config_from_dict, save_json
+from training.dataset import load_manifest
+from training.fixture import episode_fixture
+from training.noise import apply_kinect_noise
+from training.render import Camera, draw_camera, render, scene_boxes
+from training.seeding import episode_rng
+
+# The sweeps: factor -> values; the first value of each is the training condition.
+SWEEPS: dict[str, tuple] = {
+    "support_tilt_deg": (0.0, 1.5, 3.0, 4.5, 6.0),
+    "camera_roll_deg": (0.0, 5.0, 10.0, 20.0),
+    "noise_scale": (1.0, 0.5, 2.0, 3.0),
+    "focal_error": (0.0, -0.08, -0.04, 0.04, 0.08),
+    "camera_info": (True, False),
+    "resolution": ("640x480", "320x240", "1280x720"),
+}
+
+
+@dataclass(frozen=True)
+class Stress:
+    """One departure from the training draws (the defaults: none)."""
+
+    support_tilt_deg: float = 0.0
+    camera_roll_deg: float = 0.0
+    noise_scale: float = 1.0
+    focal_error: float = 0.0
+    camera_info: bool = True
+    resolution: str = ""   # "WxH"; "" = the envelope's own
+
+
+def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
+                   stress: Stress) -> tuple[np.ndarray, np.ndarray, Intrinsics | None]:
+    """(noisy depth, noisy labels, the camera_info the model is given) of one episode."""
+    index = episode["episode"]
+    fixture = episode_fixture(episode, cfg.scene)
+    if stress.support_tilt_deg:
+        azimuth = float(episode_rng(seed, index, "robustness").uniform(0.0, 360.0))
+        fixture = dataclasses.replace(fixture, tilt_deg=stress.support_tilt_deg,
+                                      tilt_azimuth_deg=azimuth)
+    camera_cfg = cfg.camera
+    if stress.camera_roll_deg:
+        camera_cfg = dataclasses.replace(camera_cfg, roll_deg=(stress.camera_roll_deg,) * 2)
+    camera, _ = draw_camera(camera_cfg, fixture, episode_rng(seed, index, "render"))
+    if stress.resolution:
+        camera = _resized(camera, *(int(v) for v in stress.resolution.split("x")))
+    episode = {**episode, "fixture": fixture.to_record()}
+    clean, labels, cosine = render(scene_boxes(episode, outcomes, cfg.scene),
+                                   fixture.room_floor_z, camera)
+    noise = cfg.noise.draw(episode_rng(seed, index, "sensor"))
+    if stress.noise_scale != 1.0:
+        s = stress.noise_scale
+        noise = dataclasses.replace(noise, sigma_disparity_px=noise.sigma_disparity_px * s,
+                                    lateral_sigma_px=noise.lateral_sigma_px * s,
+                                    speckle_rate=noise.speckle_rate * s)
+    depth, labels = apply_kinect_noise(clean, labels, cosine, camera.fx, noise,
+                                       episode_rng(seed, index, "noise"))
+    intrinsics = None
+    if stress.camera_info:
+        f = camera.fx * (1.0 + stress.focal_error)
+        intrinsics = Intrinsics(camera.width, camera.height, f, f, camera.cx, camera.cy)
+    return depth, labels, intrinsics
+
+
+def _resized(camera: Camera, width: int, height: int) -> Camera:
+    """The same view at another size: focal length scaled with the width, centre kept."""
+    scale = width / camera.width
+    return dataclasses.replace(
+        camera, width=width, height=height, fx=camera.fx * scale, fy=camera.fy * scale,
+        cx=(camera.cx + 0.5) * scale - 0.5, cy=(camera.cy + 0.5) * height / camera.height - 0.5)
+
+
+def score_stress(seg: OutcomeSegmenter, items: list[tuple[dict, list[str]]],
+                 cfg: DatasetConfig, stress: Stress) -> dict:
+    right, flagged = 0, 0
+    for episode, outcomes in items:
+        depth, labels, intrinsics = stressed_frame(episode, outcomes, cfg, cfg.seed, stress)
+        result = seg.segment(depth, intrinsics)
+        truth = outcomes_present(labels, seg.presence_min_pixels)
+        right += int(all(truth[n] == result.present[n] for n in OUTCOME_NAMES))
+        flagged += int(bool(result.outside_envelope))
+    n = len(items)
+    return {"image_all_correct": round(right / n, 4), "images": n,
+            "outside_envelope": flagged}
+
+
+def run_robustness(checkpoint: Path | None, data_dir: Path, out_dir: Path,
+                   images: int = 100, sweeps: dict[str, tuple] | None = None,
+                   progress: bool = True) -> dict:
+    """Every sweep on the first ``images`` validation episodes of ``data_dir``."""
+    data_dir, out_dir = Path(data_dir), Path(out_dir)
+    manifest = load_manifest(data_dir)
+    cfg = dataset_config_from_dict(manifest["config"])
+    episodes = load_chunks(data_dir / "simulate", cfg.episodes, cfg.chunk_size)
+    outcomes = _load_outcomes(data_dir)
+    val = [im["episode"] for im in manifest["images"] if im["split"] == "val"][:images]
+    items = [(episodes[i], outcomes[i]) for i in val]
+    seg = OutcomeSegmenter(checkpoint, backend="auto", num_threads=1)
+    sweeps = sweeps or SWEEPS
+    report: dict = {"model": str(seg.model_path), "data": str(data_dir), "task": cfg.task,
+                    "images": len(items), "factors": {}}
+    points = [(f, v) for f, values in sweeps.items() for v in values]
+    for factor, value in tqdm(points, desc="robustness", unit="point", disable=not progress):
+        result = score_stress(seg, items, cfg, Stress(**{factor: value}))
+        entry = report["factors"].setdefault(factor, {"values": [], "image_all_correct": [],
+                                                      "outside_envelope": []})
+        entry["values"].append(value)
+        entry["image_all_correct"].append(result["image_all_correct"])
+        entry["outside_envelope"].append(result["outside_envelope"])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_json(out_dir / "robustness.json", report)
+    plot_robustness(out_dir / "robustness.png", report)
+    return report
+
+
+def _load_outcomes(data_dir: Path) -> list[list[str]]:
+    from training.config import load_json
+
+    return load_json(data_dir / "outcomes.json")["outcomes"]
+
+
+def plot_robustness(path: Path, report: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    factors = report["factors"]
+    cols = 3
+    rows = math.ceil(len(factors) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), dpi=90,
+                             squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, (factor, entry) in zip(axes.ravel(), factors.items()):
+        ax.axis("on")
+        labels = [str(v) for v in entry["values"]]
+        ax.plot(range(len(labels)), entry["image_all_correct"], "o-")
+        ax.set_xticks(range(len(labels)), labels)
+        ax.set_ylim(0.0, 1.02)
+        ax.axhline(entry["image_all_correct"][0], color="grey", lw=0.8, ls="--")
+        ax.set_title(factor, fontsize=9)
+        ax.set_ylabel("image all-correct")
+    fig.suptitle(f"robustness of {Path(report['model']).name} on {report['images']} "
+                 f"{report['task']} validation scenes (first value of each: as trained)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
