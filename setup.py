@@ -10,7 +10,8 @@ setup(
     name=PACKAGE,
     version="0.2.0",
     packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*", "training", "training.*"]),
-    package_data={PACKAGE: ["models/*.pt", "models/*.onnx", "models/*.json"]},
+    package_data={PACKAGE: ["models/*.pt", "models/*.onnx", "models/*.json"],
+                  "training": ["scenes/*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -22,7 +23,8 @@ setup(
     # name what the offline side adds: `pip install -e .[training]`.
     install_requires=["setuptools"],
     extras_require={
-        "training": ["pybullet>=3.2.6", "scikit-learn>=1.4", "matplotlib>=3.8", "onnx>=1.16"],
+        "training": ["pybullet>=3.2.6", "scikit-learn>=1.4", "matplotlib>=3.8", "onnx>=1.16",
+                     "pyyaml>=6.0"],
         "test": ["pytest>=8"],
     },
     zip_safe=False,

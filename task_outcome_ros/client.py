@@ -58,14 +58,19 @@ def parse(success: bool, message: str) -> CheckResult:
     except json.JSONDecodeError as exc:
         raise CheckError(f"{SERVICE} replied with something other than its JSON: "
                          f"{message[:80]!r} ({exc})") from None
-    if not isinstance(data, dict) or data.get("schema") != SCHEMA:
-        raise CheckError(f"{SERVICE} replied with schema {data.get('schema')!r}, expected "
-                         f"{SCHEMA!r}: is this outcome_node of another version?")
-    stamp = data.get("stamp")
-    stamp_ns = None if stamp is None else stamp["sec"] * 1_000_000_000 + stamp["nanosec"]
-    failures = tuple(FailureObject(f["outcome"], _tuple(f.get("centroid_px")),
-                                   _tuple(f.get("centroid_m")))
-                     for f in data.get("failures", []))
+    schema = data.get("schema") if isinstance(data, dict) else None
+    if schema != SCHEMA:
+        raise CheckError(f"{SERVICE} replied with schema {schema!r}, expected {SCHEMA!r}: is "
+                         "this outcome_node of another version?")
+    try:
+        stamp = data.get("stamp")
+        stamp_ns = None if stamp is None else stamp["sec"] * 1_000_000_000 + stamp["nanosec"]
+        failures = tuple(FailureObject(f["outcome"], _tuple(f.get("centroid_px")),
+                                       _tuple(f.get("centroid_m")))
+                         for f in data.get("failures", []))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CheckError(f"{SERVICE} replied with a malformed {SCHEMA} message: "
+                         f"{type(exc).__name__}: {exc}") from None
     return CheckResult(bool(success), str(data.get("reason", "")), stamp_ns,
                        str(data.get("frame_id", "")), tuple(data.get("outcomes", [])),
                        failures, str(data.get("envelope", "")), data)

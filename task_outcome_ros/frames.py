@@ -74,7 +74,7 @@ def process_frame(segmenter: Any, msg: Any, camera_info: Any | None, *,
     header = msg.header
 
     def failed(why: str) -> FrameOutputs:
-        fields = R.error_fields(why, dropped=dropped, latency_ms=_since(t_start))
+        fields = R.error_fields(why, dropped=dropped, latency_ms=since_ms(t_start))
         return FrameOutputs(header, fields, error=why)
 
     try:
@@ -95,11 +95,11 @@ def process_frame(segmenter: Any, msg: Any, camera_info: Any | None, *,
         return failed(f"inference failed on a {width} x {height} frame: {exc}")
     labels = np.ascontiguousarray(result.labels, dtype=np.uint8)
     fields = R.status_fields(result, intrinsics, camera_note=camera_note, dropped=dropped,
-                             latency_ms=_since(t_start))
+                             latency_ms=since_ms(t_start))
     overlay = None if overlay_alpha is None else R.overlay_rgb(depth, labels, overlay_alpha)
     return FrameOutputs(header, fields, labels, overlay, result, intrinsics, notes=notes)
 
 
-def _since(t_start: float) -> float:
+def since_ms(t_start: float) -> float:
     """Milliseconds from arrival to now (queueing, decoding and inference)."""
     return (time.monotonic() - t_start) * 1e3

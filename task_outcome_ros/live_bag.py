@@ -175,8 +175,9 @@ def run_live(bag: Path, out: Path, *, rate_hz_note: str = "", timeout_s: float =
     command = _script("outcome_node") + (["--ros-args", *node_args] if node_args else [])
     with open(out / "outcome_node.log", "w") as node_log:
         node = subprocess.Popen(command, env=env, stdout=node_log, stderr=subprocess.STDOUT)
-        recorder = Recorder(env)
+        recorder = None
         try:
+            recorder = Recorder(env)
             _wait_for_node(recorder, node, out, timeout_s)
             log(f"replaying {n_frames} frames{rate_hz_note} over DDS with outcome_replay")
             subprocess.run([*_script("outcome_replay"), str(bag), "--qos", "sensor_data",
@@ -189,7 +190,8 @@ def run_live(bag: Path, out: Path, *, rate_hz_note: str = "", timeout_s: float =
             if then is not None:
                 then(env)
         finally:
-            recorder.close()
+            if recorder is not None:
+                recorder.close()
             node.terminate()
             try:
                 node.wait(timeout=10)

@@ -3,7 +3,7 @@
 The node converts messages to arrays and back. Each frame goes through
 ``frames.process_frame``, the step ``outcome_bag`` shares (decode, camera_info, segment, status
 fields, overlay), so the node itself only holds parameters, QoS, threading and publishing.
-Besides this module only the DDS tools (replay.py, live_bag.py) import rclpy.
+Besides this module only the DDS tools (replay.py, live_bag.py, client.py) import rclpy.
 
 Real time: the subscription callback only keeps the newest image (an overwritten, never
 processed one counts as dropped); one worker thread processes whatever is newest, so a slow
@@ -45,7 +45,7 @@ from task_outcome_ros import labels as L
 from task_outcome_ros import outcome_report as R
 from task_outcome_ros.check import CheckBook, frame_answer
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
-from task_outcome_ros.frames import NO_CAMERA_INFO_NOTE, process_frame
+from task_outcome_ros.frames import NO_CAMERA_INFO_NOTE, process_frame, since_ms
 from task_outcome_ros.transport import TransportMonitor
 
 NODE_NAME = "outcome_node"
@@ -305,8 +305,9 @@ class OutcomeNode(Node):
                 self.get_logger().error(f"unexpected error on a frame: {exc!r}",
                                         throttle_duration_sec=WARN_THROTTLE_S)
                 try:
-                    self._publish_error(msg.header, f"internal error: {exc}", dropped,
-                                        t_received)
+                    why = f"internal error: {exc}"
+                    self._publish_error(msg.header, why, dropped, t_received)
+                    self._answer_checks(msg.header, _ErrorFrame(R.error_fields(why)))
                 except Exception:  # already logged; keep the worker alive
                     pass
 
@@ -350,7 +351,7 @@ class OutcomeNode(Node):
 
     def _publish_error(self, header: Header, why: str, dropped: int, t_received: float) -> None:
         self._publish_status(header, R.error_fields(why, dropped=dropped,
-                                                    latency_ms=_latency_ms(t_received)))
+                                                    latency_ms=since_ms(t_received)))
 
     def release_checks(self) -> None:
         """Answer waiting outcome/check requests now, so the executor can shut down."""
@@ -374,6 +375,14 @@ def status_array(header: Header, fields: R.StatusFields) -> DiagnosticArray:
     return DiagnosticArray(header=header, status=[status])
 
 
+@dataclass
+class _ErrorFrame:
+    """A frame the worker failed on, as ``_answer_checks`` reads frames."""
+
+    fields: R.StatusFields
+    result: Any = None
+
+
 class _NextSpin:
     """Awaitable that gives control back to the executor until its next spin."""
 
@@ -393,11 +402,6 @@ def _image_msg(header: Header, pixels: np.ndarray, encoding: str) -> Image:
     data = array.array("B", np.ascontiguousarray(pixels, dtype=np.uint8).tobytes())
     return Image(header=header, height=height, width=width, encoding=encoding,
                  is_bigendian=0, step=width * channels, data=data)
-
-
-def _latency_ms(t_received: float) -> float:
-    """Arrival at the node -> now (queueing + decode + inference)."""
-    return (time.monotonic() - t_received) * 1e3
 
 
 def _markers(header: Header, centroids: list[R.Centroid]) -> MarkerArray:
@@ -465,6 +469,9 @@ def main(args: list[str] | None = None) -> int:
     finally:
         if node is not None:
             node.release_checks()
+            if executor is not None:  # let the released requests send their replies
+                for _ in range(20):
+                    executor.spin_once(timeout_sec=0.0)
         if executor is not None:
             executor.shutdown()
         if node is not None:

@@ -7,7 +7,7 @@ many it published. Messages are published as the bag's serialized CDR bytes (rcl
 ``Publisher.publish`` takes ``bytes``), so there is no conversion cost and the headers are the
 recorded ones (a ``--loop`` repeats the same stamps).
 
-One of the three modules that use rclpy (with node.py and live_bag.py); it imports it inside
+One of the modules that use rclpy (with node.py, live_bag.py and client.py); it imports it inside
 ``main`` so the package (and this module) still imports where ROS is not installed.
 """
 

@@ -407,7 +407,7 @@ def test_burst_keeps_only_the_newest_and_counts_drops(session):
     dropped = int(nh.status_values(last.status)["dropped_frames"]) - dropped_before
     assert dropped >= 1, "no frame was overwritten: the node queued the burst"
     assert processed <= BURST - dropped  # each frame processed, overwritten or lost, once
-    assert processed < BURST // 2, f"{processed} of {BURST} burst frames were processed"
+    assert processed < BURST, f"all {BURST} burst frames were processed: queued, not dropped"
     assert proc.alive()
 
 

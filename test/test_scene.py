@@ -62,7 +62,7 @@ def test_a_spec_may_leave_fields_to_the_default_task(tmp_path):
     ("scene", "friction", "high", ["scene.friction", "(min, max) pair"]),
     ("scene", "max_objects", 2.5, ["scene.max_objects", "whole number"]),
     ("scene", "shape_weights", {"box": 1.0, "torus": 1.0}, ["shape_weights", "torus"]),
-    ("scene", "table_size", [0.6, 0.6], ["scene.table_size", "make the table at least"]),
+    ("scene", "table_size", [0.6, 0.6], ["scene.table_size", "along x", "make it at least"]),
     ("camera", "distance", [0.2, 1.3], ["camera.distance", "0.3-4.5 m", "could not see"]),
     ("camera", "elevation_deg", [45.0, 95.0], ["camera.elevation_deg[1]", "[5.0, 90.0]"]),
     ("camera", "target_offset", 0.2, ["camera.target_offset", "could leave the fixture"]),
@@ -88,6 +88,7 @@ def test_bad_fields_are_refused_naming_file_field_and_range(tmp_path, section, f
     ("- just\n- a list\n", "a scene spec is a mapping"),
     ("scene: {}\nlighting: {}\n", "unknown section(s) ['lighting']"),
     ("name: ''\n", "name must be a non-empty string"),
+    ("name: ../cell\n", "letters, digits, _ and -"),
 ])
 def test_malformed_files_are_refused_naming_the_file(tmp_path, text, says):
     path = tmp_path / "broken.yaml"

@@ -117,10 +117,10 @@ class SceneConfig:
         _check_interval(o, "container_yaw_deg", self.container_yaw_deg, -180.0, 180.0)
         _check_interval(o, "floor_height", self.floor_height, -1.0, 1.0)
         if self.table_size is not None:
-            _check_interval(o, "table_size", (min(self.table_size), max(self.table_size)),
-                            0.2, 10.0)
-            if len(self.table_size) != 2:
+            if not isinstance(self.table_size, (tuple, list)) or len(self.table_size) != 2:
                 raise ConfigError(f"{o}.table_size must be (x, y), got {self.table_size!r}")
+            for k, side in enumerate(self.table_size):
+                _check_range(o, f"table_size[{k}]", side, 0.2, 10.0)
         _check_interval(o, "table_height", self.table_height, 0.2, 2.0)
         _check_range(o, "table_offset", self.table_offset, 0.0, 5.0)
         _check_interval(o, "support_tilt_deg", self.support_tilt_deg, 0.0, 15.0)
@@ -160,16 +160,19 @@ class SceneConfig:
             raise ConfigError(f"{o}.shape_weights: at least one shape needs a weight > 0")
 
     def _validate_table(self, o: str) -> None:
-        """The fixture must stand on the table wherever its pose and size are drawn."""
-        reach = math.hypot(self.inner_size_x[1] / 2 + self.wall_thickness,
-                           self.inner_size_y[1] / 2 + self.wall_thickness)
-        reach += self.container_offset + self.table_offset
-        half = min(self.table_size) / 2
-        if reach > half:
-            raise ConfigError(
-                f"{o}.table_size = {list(self.table_size)}: the fixture reaches {reach:.3f} m "
-                f"from the table centre (footprint, offsets and any yaw) but the table's "
-                f"half width is only {half:.3f} m; make the table at least {2 * reach:.3f} m")
+        """The fixture must stand on the table wherever its size and the table's offset are
+        drawn. The table turns with the container, so this is per axis of the container; an
+        offset of up to ``table_offset`` on each axis reaches sqrt(2) x that."""
+        reach = math.sqrt(2.0) * self.table_offset
+        for k, (axis, inner) in enumerate((("x", self.inner_size_x), ("y", self.inner_size_y))):
+            need = inner[1] / 2 + self.wall_thickness + reach
+            half = self.table_size[k] / 2
+            if need > half:
+                raise ConfigError(
+                    f"{o}.table_size = {list(self.table_size)}: along {axis} the fixture "
+                    f"reaches {need:.3f} m from the table's centre (footprint, wall and "
+                    f"table_offset) but the table's half size is {half:.3f} m; make it at "
+                    f"least {2 * need:.3f} m")
 
 
 @dataclass(frozen=True)
@@ -291,6 +294,7 @@ _NOISE_LIMITS = {
     "speckle_max_radius_px": (0, 20), "min_range": (0.0, 10.0), "max_range": (0.0, 20.0),
 }
 _NOISE_INTS = ("disparity_subpixel", "speckle_max_radius_px")
+NOISE_PARAMETERS = tuple(_NOISE_LIMITS)  # what a manifest records of a frame's drawn sensor
 
 
 @dataclass(frozen=True)

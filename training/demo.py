@@ -34,14 +34,14 @@ BAG_RATE_HZ = 5.0
 
 
 def make_data(out: Path, episodes: int, seed: int) -> Path:
-    """Steps 1-2: a small dataset run and its bag (the dataset is reused if already there)."""
+    """Steps 1-2: a small dataset run and its bag (a finished run resumes to nothing; one made
+    with other options is refused, naming them)."""
     from training.export_bag import export_bag
 
     data = out / "data"
-    if not (data / "manifest.json").exists():
-        cmd = [sys.executable, "-m", "training", "dataset", "--out", str(data), "--episodes",
-               str(episodes), "--seed", str(seed), "--chunk-size", "10"]
-        subprocess.run(cmd, check=True)
+    cmd = [sys.executable, "-m", "training", "dataset", "--out", str(data), "--episodes",
+           str(episodes), "--seed", str(seed), "--chunk-size", "10"]
+    subprocess.run(cmd, check=True)
     bag = out / "input_bag"
     export_bag(data, bag, split="all", rate_hz=BAG_RATE_HZ, encoding="32FC1", overwrite=True)
     return bag
@@ -132,7 +132,7 @@ def add_demo_args(p: argparse.ArgumentParser) -> None:
 def demo_main(args: argparse.Namespace) -> int:
     try:
         run_demo(args.out, args.episodes, args.seed)
-    except (RuntimeError, subprocess.CalledProcessError, BagToolError) as exc:
+    except (RuntimeError, subprocess.SubprocessError, BagToolError) as exc:
         print(f"[demo] failed: {exc}", file=sys.stderr)
         return 1
     return 0

@@ -27,17 +27,13 @@ from task_outcome_ros.labels import (
     outcomes_present,
 )
 from training.chunks import load_chunks, run_chunks
-from training.config import CameraConfig, DatasetConfig, SceneConfig
+from training.config import NOISE_PARAMETERS, CameraConfig, DatasetConfig, SceneConfig
 from training.fixture import Fixture, _uniform, episode_fixture
 from training.geometry import quat_to_matrix
 from training.noise import apply_kinect_noise
 from training.seeding import episode_rng, episode_seed
 
 NEAR = 0.05  # m: hits closer than this to the camera are ignored
-# The sensor parameters a manifest records for each frame when a spec draws them per frame.
-SENSOR_RECORD = ("baseline", "disparity_subpixel", "sigma_disparity_px", "grazing_sigma",
-                 "lateral_sigma_px", "grazing_start_deg", "grazing_full_deg", "speckle_rate",
-                 "speckle_max_radius_px", "min_range", "max_range")
 
 
 @dataclass(frozen=True)
@@ -278,7 +274,7 @@ def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
         "pixel_counts": outcome_pixel_counts(noisy_labels),
     }
     if cfg.noise.drawn_per_frame():
-        record["sensor"] = {name: getattr(sensor, name) for name in SENSOR_RECORD}
+        record["sensor"] = {name: getattr(sensor, name) for name in NOISE_PARAMETERS}
     return {"clean": clean, "depth": noisy, "labels": noisy_labels, "record": record}
 
 

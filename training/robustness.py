@@ -128,6 +128,8 @@ def run_robustness(checkpoint: Path | None, data_dir: Path, out_dir: Path,
     episodes = load_chunks(data_dir / "simulate", cfg.episodes, cfg.chunk_size)
     outcomes = _load_outcomes(data_dir)
     val = [im["episode"] for im in manifest["images"] if im["split"] == "val"][:images]
+    if not val:
+        raise ValueError(f"{data_dir}: no validation images to re-render")
     items = [(episodes[i], outcomes[i]) for i in val]
     seg = OutcomeSegmenter(checkpoint, backend="auto", num_threads=1)
     sweeps = sweeps or SWEEPS

@@ -12,6 +12,7 @@ the resolved config is saved in the run folder and in every checkpoint.
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 from typing import Any
 
@@ -56,8 +57,10 @@ def read_spec(name_or_path: str | Path) -> tuple[str, dict[str, Any]]:
         raise ConfigError(f"{path}: unknown section(s) {unknown}; expected {SECTIONS}, "
                           "name, description")
     name = data.get("name", path.stem)
-    if not isinstance(name, str) or not name:
-        raise ConfigError(f"{path}: name must be a non-empty string, got {name!r}")
+    # The name becomes the shipped model's file and model_path:=<name>: a plain word.
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9_-]+", name):
+        raise ConfigError(f"{path}: name must be a non-empty string of letters, digits, _ "
+                          f"and -, got {name!r}")
     return name, {k: data[k] for k in SECTIONS if k in data}
 
 

@@ -1,0 +1,67 @@
+"""outcome/check without DDS: the book of waiting requests and the reply's content."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+from task_outcome_ros.check import Answer, CheckBook, frame_answer
+from task_outcome_ros.client import CheckError, parse
+from task_outcome_ros.outcome_report import ERROR, OK, WARN, StatusFields
+
+pytestmark = pytest.mark.unit
+
+
+def _fields(level: int, message: str, **values: str) -> StatusFields:
+    return StatusFields(level, message, list(values.items()))
+
+
+def test_success_only_for_success_inside_the_envelope():
+    ok = _fields(OK, "success", **{"success.present": "true", "fell_outside.objects": "0",
+                                   "envelope": "ok"})
+    assert frame_answer((1, 2), "cam", ok, [], True).success
+    assert not frame_answer((1, 2), "cam", ok, ["fixture not seen"], True).success
+    fell = _fields(WARN, "fell_outside", **{"fell_outside.present": "true",
+                                            "fell_outside.objects": "1",
+                                            "fell_outside.0.centroid_px": "3.0,4.0",
+                                            "fell_outside.0.centroid_m": "0.1,0.2,1.5"})
+    answer = frame_answer((1, 2), "cam", fell, [], True)
+    assert not answer.success
+    result = parse(answer.success, answer.message)
+    assert result.failures[0].centroid_m == (0.1, 0.2, 1.5)
+    assert result.stamp_ns == 1_000_000_002
+    error = frame_answer((1, 2), "cam", _fields(ERROR, "bad depth image: x"), None, False)
+    assert not error.success and "frame not processed" in json.loads(error.message)["reason"]
+
+
+def test_the_book_answers_only_requests_older_than_the_frame_and_times_out_the_rest():
+    book = CheckBook()
+    early, late = book.ask(100), book.ask(200)
+    answer = Answer(True, "{}")
+    assert book.on_frame(150, answer) == [early]
+    assert book.wait(early, 5.0) is answer  # answered already: no waiting
+    assert book.on_frame(200, answer) == []   # stamped at the request: not after it
+    started = time.monotonic()
+    assert "no frame within 0.05 s" in book.wait(late, 0.05).message
+    assert 0.04 <= time.monotonic() - started < 1.0 and book.pending() == 0
+    waiting = book.ask(300)
+    book.release_all("shutting down")
+    assert "shutting down" in book.wait(waiting, 5.0).message
+
+
+def test_a_reply_that_is_not_the_nodes_json_is_a_clear_error():
+    with pytest.raises(CheckError, match="JSON"):
+        parse(True, "yes")
+    with pytest.raises(CheckError, match="schema"):
+        parse(True, json.dumps({"schema": "other/9"}))
+
+
+MALFORMED = ["null", "42", json.dumps({"schema": "task_outcome_ros/check/1", "stamp": {"sec": 1}})]
+
+
+@pytest.mark.parametrize("message", MALFORMED)
+def test_malformed_replies_are_check_errors_not_crashes(message):
+    with pytest.raises(CheckError):
+        parse(True, message)
