@@ -185,20 +185,40 @@ def render(boxes: list[SceneBox], floor_z: float, camera: Camera
     return depth, labels, cosine
 
 
+def _local_rays(solid: SceneBox, camera: Camera, rays: np.ndarray,
+                rect: tuple[int, int, int, int]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The camera's position and the rays inside ``rect``, both in the solid's own frame."""
+    v0, v1, u0, u1 = rect
+    block = rays[:, v0:v1, u0:u1]
+    rot = solid.rotation.astype(np.float32)
+    origin = (camera.position - solid.centre) @ solid.rotation
+    return origin, [block[0] * rot[0, k] + block[1] * rot[1, k] + block[2] * rot[2, k]
+                    for k in range(3)]
+
+
+def _write_hits(solid: SceneBox, rect: tuple[int, int, int, int], hit: np.ndarray,
+                t_hit: np.ndarray, n_dot: np.ndarray, norm: np.ndarray, depth: np.ndarray,
+                labels: np.ndarray, cosine: np.ndarray) -> None:
+    """Z-buffered write of a solid's hits: depth, label and |cos| of the incidence angle."""
+    v0, v1, u0, u1 = rect
+    zbuf = depth[v0:v1, u0:u1]
+    closer = hit & (t_hit < zbuf)
+    zbuf[closer] = t_hit[closer]
+    labels[v0:v1, u0:u1][closer] = solid.label
+    cosine[v0:v1, u0:u1][closer] = (np.abs(n_dot) / norm[v0:v1, u0:u1])[closer]
+
+
 def _cast_box(box: SceneBox, camera: Camera, rays: np.ndarray, norm: np.ndarray,
               rect: tuple[int, int, int, int], depth: np.ndarray, labels: np.ndarray,
               cosine: np.ndarray) -> None:
-    """Slab test of one box against the rays inside ``rect``; z-buffered write of the hits."""
-    v0, v1, u0, u1 = rect
-    block = rays[:, v0:v1, u0:u1]
-    rot = box.rotation.astype(np.float32)
-    origin = (camera.position - box.centre) @ box.rotation      # camera in the box frame
-    t_near = np.full(block.shape[1:], -np.inf, np.float32)
-    t_far = np.full(block.shape[1:], np.inf, np.float32)
-    entry_axis_d = np.zeros(block.shape[1:], np.float32)        # ray component along entry axis
+    """Slab test of one box against the rays inside ``rect``."""
+    origin, dirs = _local_rays(box, camera, rays, rect)
+    shape = dirs[0].shape
+    t_near = np.full(shape, -np.inf, np.float32)
+    t_far = np.full(shape, np.inf, np.float32)
+    entry_axis_d = np.zeros(shape, np.float32)        # ray component along the entry axis
     with np.errstate(divide="ignore", invalid="ignore"):
-        for k in range(3):
-            d = block[0] * rot[0, k] + block[1] * rot[1, k] + block[2] * rot[2, k]
+        for k, d in enumerate(dirs):
             inv = 1.0 / d
             t1 = (-box.half_extents[k] - origin[k]) * inv
             t2 = (box.half_extents[k] - origin[k]) * inv
@@ -207,25 +227,18 @@ def _cast_box(box: SceneBox, camera: Camera, rays: np.ndarray, norm: np.ndarray,
             t_near = np.where(enters_here, lo, t_near)
             entry_axis_d = np.where(enters_here, d, entry_axis_d)
             t_far = np.fmin(t_far, hi)
-    zbuf = depth[v0:v1, u0:u1]
-    closer = (t_far >= t_near) & (t_near > NEAR) & (t_near < zbuf)
-    zbuf[closer] = t_near[closer]
-    labels[v0:v1, u0:u1][closer] = box.label
-    cosine[v0:v1, u0:u1][closer] = (np.abs(entry_axis_d) / norm[v0:v1, u0:u1])[closer]
+    _write_hits(box, rect, (t_far >= t_near) & (t_near > NEAR), t_near, entry_axis_d, norm,
+                depth, labels, cosine)
 
 
 def _cast_cylinder(cyl: SceneBox, camera: Camera, rays: np.ndarray, norm: np.ndarray,
                    rect: tuple[int, int, int, int], depth: np.ndarray, labels: np.ndarray,
                    cosine: np.ndarray) -> None:
-    """Ray-cylinder entry (side quadric or either cap) inside ``rect``; z-buffered write."""
-    v0, v1, u0, u1 = rect
-    block = rays[:, v0:v1, u0:u1]
-    rot = cyl.rotation.astype(np.float32)
-    o = (camera.position - cyl.centre) @ cyl.rotation   # camera in the cylinder frame
-    d = [block[0] * rot[0, k] + block[1] * rot[1, k] + block[2] * rot[2, k] for k in range(3)]
+    """Ray-cylinder entry (side quadric or either cap) inside ``rect``."""
+    o, d = _local_rays(cyl, camera, rays, rect)
     r, h = float(cyl.half_extents[0]), float(cyl.half_extents[2])
-    t_hit = np.full(block.shape[1:], np.inf, np.float32)
-    n_dot = np.zeros(block.shape[1:], np.float32)       # ray . surface normal at the hit
+    t_hit = np.full(d[0].shape, np.inf, np.float32)
+    n_dot = np.zeros(d[0].shape, np.float32)       # ray . surface normal at the hit
     with np.errstate(divide="ignore", invalid="ignore"):
         a = d[0] ** 2 + d[1] ** 2
         b = 2.0 * (o[0] * d[0] + o[1] * d[1])
@@ -243,11 +256,7 @@ def _cast_cylinder(cyl: SceneBox, camera: Camera, rays: np.ndarray, norm: np.nda
                    & (t_cap < t_hit))
             t_hit = np.where(hit, t_cap, t_hit)
             n_dot = np.where(hit, d[2], n_dot)
-    zbuf = depth[v0:v1, u0:u1]
-    closer = np.isfinite(t_hit) & (t_hit < zbuf)
-    zbuf[closer] = t_hit[closer]
-    labels[v0:v1, u0:u1][closer] = cyl.label
-    cosine[v0:v1, u0:u1][closer] = (np.abs(n_dot) / norm[v0:v1, u0:u1])[closer]
+    _write_hits(cyl, rect, np.isfinite(t_hit), t_hit, n_dot, norm, depth, labels, cosine)
 
 
 def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int
