@@ -313,8 +313,10 @@ class OutcomeNode(Node):
 
     def _process(self, msg: Image, t_received: float, camera_info: CameraInfo | None,
                  dropped: int) -> None:
+        # No work nobody asked for: the overlay and the markers only while someone listens.
         overlay_alpha = (float(self._params["overlay_alpha"])
-                         if self._params["publish_overlay"] else None)
+                         if self._params["publish_overlay"]
+                         and self._pub_overlay.get_subscription_count() > 0 else None)
         frame = process_frame(self._segmenter, msg, camera_info, overlay_alpha=overlay_alpha,
                               t_start=t_received, dropped=dropped)
         log = self.get_logger()
@@ -341,7 +343,7 @@ class OutcomeNode(Node):
         self._answer_checks(msg.header, frame)
         if frame.overlay is not None:
             self._pub_overlay.publish(_image_msg(msg.header, frame.overlay, "rgb8"))
-        if self._params["publish_markers"]:
+        if self._params["publish_markers"] and self._pub_markers.get_subscription_count() > 0:
             centroids = R.object_centroids(frame.result, frame.intrinsics)
             self._pub_markers.publish(_markers(msg.header, centroids))
 

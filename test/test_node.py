@@ -38,6 +38,7 @@ from model_helpers import (  # noqa: E402
     DEFAULT_ENVELOPE_CONFIG,
 )
 from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import Image  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
 from task_outcome_ros import labels as L  # noqa: E402
@@ -506,6 +507,30 @@ def test_package_imports_without_rclpy():
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("ok")
+
+
+def test_overlay_is_made_only_while_someone_listens_and_again_when_they_return(session):
+    """Nobody on outcome/overlay: labels and status still come; a subscriber that joins
+    later gets overlays again (the node checks for listeners per frame)."""
+    client, proc = session
+    overlay_sub = client.subs[2]
+    client.node.destroy_subscription(overlay_sub)
+    try:
+        assert client.spin_until(
+            lambda: client.node.count_subscribers("outcome/overlay") == 0, 10.0)
+        client.spin_until(lambda: False, 0.5)  # the node's side of discovery catches up
+        msg = nh.depth_msg(scene(), stamp=client.next_stamp())
+        reply = client.request(msg, ("status", "labels"))
+        check_reply(msg, reply)
+        assert reply.overlay is None
+    finally:
+        client.subs[2] = client.node.create_subscription(
+            Image, "outcome/overlay", client._store("overlay"), nh.RELIABLE)
+    assert client.spin_until(lambda: client.subs[2].get_publisher_count() >= 1, 10.0)
+    client.spin_until(lambda: False, 0.5)
+    again = nh.depth_msg(scene(), stamp=client.next_stamp())
+    check_reply(again, client.request(again, ALL_OUTPUTS))
+    assert proc.alive()
 
 
 # What a robot does not install: the simulator, the clustering, the plots, the training code.
