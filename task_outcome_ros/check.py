@@ -6,8 +6,8 @@ frame whose header stamp is later than the request's arrival at the node (both i
 ROS clock, so replays need ``use_sim_time``). No frame in time: a reply saying so.
 
 This module is the bookkeeping and the reply's content, with no rclpy, so it is tested alone;
-node.py wires it to the service (its callback waits in one of the executor's threads) and to
-its worker thread, which finishes frames.
+node.py wires it to the service (a coroutine that polls the book) and to its worker thread,
+which finishes frames.
 """
 
 from __future__ import annotations
@@ -29,26 +29,24 @@ class Answer:
     """What one check request is answered with (the Trigger response's two fields)."""
 
     success: bool
-    message: str  # JSON, see ``frame_summary``
+    message: str  # JSON, see ``frame_answer``
 
 
 class CheckBook:
     """Pending check requests; thread-safe. A frame finished by the node's worker thread
     answers the requests that arrived before it was taken (``on_frame``); the service
-    collects its answer with ``poll`` (without blocking) or ``wait``."""
+    collects its answer with ``poll``, which never blocks."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._pending: dict[int, int] = {}            # token -> arrival ns
         self._answers: dict[int, Answer] = {}
-        self._events: dict[int, threading.Event] = {}
         self._tokens = itertools.count()
 
     def ask(self, arrival_ns: int) -> int:
         with self._lock:
             token = next(self._tokens)
             self._pending[token] = arrival_ns
-            self._events[token] = threading.Event()
             return token
 
     def pending(self) -> int:
@@ -62,7 +60,6 @@ class CheckBook:
             for token in done:
                 del self._pending[token]
                 self._answers[token] = answer
-                self._events[token].set()
             return done
 
     def release_all(self, why: str) -> None:
@@ -70,9 +67,7 @@ class CheckBook:
         with self._lock:
             for token in list(self._pending):
                 del self._pending[token]
-                self._answers[token] = Answer(False, json.dumps(
-                    {"schema": SCHEMA, "reason": why, "stamp": None}, separators=(",", ":")))
-                self._events[token].set()
+                self._answers[token] = no_frame_answer(why)
 
     def poll(self, token: int, timed_out: bool, timeout_s: float) -> Answer | None:
         """``token``'s answer if it has one; else the timeout answer once ``timed_out``; else
@@ -82,18 +77,13 @@ class CheckBook:
             if answer is None and not timed_out:
                 return None
             self._pending.pop(token, None)
-            del self._events[token]
-            return answer or timeout_answer(timeout_s)
-
-    def wait(self, token: int, timeout_s: float) -> Answer:
-        """Block until ``token`` is answered, or give the timeout answer."""
-        self._events[token].wait(timeout_s)
-        return self.poll(token, True, timeout_s)
+            return answer or no_frame_answer(f"no frame within {timeout_s:g} s")
 
 
-def timeout_answer(timeout_s: float) -> Answer:
-    return Answer(False, json.dumps({"schema": SCHEMA, "reason": f"no frame within "
-                                     f"{timeout_s:g} s", "stamp": None}, separators=(",", ":")))
+def no_frame_answer(reason: str) -> Answer:
+    """A reply no frame answered (a timeout, a shutdown): success false, no stamp."""
+    return Answer(False, json.dumps({"schema": SCHEMA, "reason": reason, "stamp": None},
+                                    separators=(",", ":")))
 
 
 def frame_answer(stamp: tuple[int, int], frame_id: str, fields: Any,

@@ -29,7 +29,7 @@ class FrameOutputs:
     fields: R.StatusFields
     labels: np.ndarray | None = None
     overlay: np.ndarray | None = None
-    result: Any | None = None  # inference.SegmentationResult
+    result: Any | None = None  # inference.OutcomeResult
     intrinsics: Intrinsics | None = None
     error: str | None = None
     # Notes for the log, not errors: camera_info ignored, nominal camera used.

@@ -99,7 +99,7 @@ class Recorder:
 
     def _keeper(self, topic: str):
         def keep(msg) -> None:
-            stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            stamp = B.stamp_to_ns(msg.header.stamp)
             self.received[topic][stamp] = (time.monotonic(), msg)
         return keep
 

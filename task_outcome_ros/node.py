@@ -43,9 +43,10 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from task_outcome_ros import labels as L
 from task_outcome_ros import outcome_report as R
+from task_outcome_ros.bag_io import stamp_to_ns
 from task_outcome_ros.check import CheckBook, frame_answer
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
-from task_outcome_ros.frames import NO_CAMERA_INFO_NOTE, process_frame, since_ms
+from task_outcome_ros.frames import NO_CAMERA_INFO_NOTE, FrameOutputs, process_frame, since_ms
 from task_outcome_ros.transport import TransportMonitor
 
 NODE_NAME = "outcome_node"
@@ -251,7 +252,7 @@ class OutcomeNode(Node):
     def checks_waiting(self) -> bool:
         return self._checks.pending() > 0
 
-    def _answer_checks(self, header: Header, frame: Any) -> None:
+    def _answer_checks(self, header: Header, frame: FrameOutputs) -> None:
         """Worker thread: a processed frame answers the requests that arrived before it."""
         if not self._checks.pending():
             return
@@ -259,7 +260,7 @@ class OutcomeNode(Node):
         answer = frame_answer((header.stamp.sec, header.stamp.nanosec), header.frame_id,
                               frame.fields, result.outside_envelope if result else None,
                               bool(result and result.envelope_checked))
-        self._checks.on_frame(header.stamp.sec * 1_000_000_000 + header.stamp.nanosec, answer)
+        self._checks.on_frame(stamp_to_ns(header.stamp), answer)
 
     def _on_set_parameters(self, params: list) -> SetParametersResult:
         for p in params:
@@ -306,8 +307,10 @@ class OutcomeNode(Node):
                                         throttle_duration_sec=WARN_THROTTLE_S)
                 try:
                     why = f"internal error: {exc}"
-                    self._publish_error(msg.header, why, dropped, t_received)
-                    self._answer_checks(msg.header, _ErrorFrame(R.error_fields(why)))
+                    fields = R.error_fields(why, dropped=dropped,
+                                            latency_ms=since_ms(t_received))
+                    self._publish_status(msg.header, fields)
+                    self._answer_checks(msg.header, FrameOutputs(msg.header, fields, error=why))
                 except Exception:  # already logged; keep the worker alive
                     pass
 
@@ -351,10 +354,6 @@ class OutcomeNode(Node):
     def _publish_status(self, header: Header, fields: R.StatusFields) -> None:
         self._pub_status.publish(status_array(header, fields))
 
-    def _publish_error(self, header: Header, why: str, dropped: int, t_received: float) -> None:
-        self._publish_status(header, R.error_fields(why, dropped=dropped,
-                                                    latency_ms=since_ms(t_received)))
-
     def release_checks(self) -> None:
         """Answer waiting outcome/check requests now, so the executor can shut down."""
         self._checks.release_all("outcome_node is shutting down")
@@ -375,14 +374,6 @@ def status_array(header: Header, fields: R.StatusFields) -> DiagnosticArray:
                               message=fields.message, hardware_id=header.frame_id,
                               values=[KeyValue(key=k, value=v) for k, v in fields.values])
     return DiagnosticArray(header=header, status=[status])
-
-
-@dataclass
-class _ErrorFrame:
-    """A frame the worker failed on, as ``_answer_checks`` reads frames."""
-
-    fields: R.StatusFields
-    result: Any = None
 
 
 class _NextSpin:

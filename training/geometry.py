@@ -56,12 +56,6 @@ def object_sample_points(obj: dict) -> np.ndarray:
     return grid @ quat_to_matrix(obj["orientation"]).T + np.asarray(obj["position"])
 
 
-def box_sample_points(size, position, orientation) -> np.ndarray:
-    """A uniform grid of points filling a box, faces included, in world coordinates."""
-    return object_sample_points({"size": size, "position": position,
-                                 "orientation": orientation})
-
-
 def object_top(obj: dict, fixture: Fixture) -> float:
     """Height of the object's highest point above the fixture's base (m)."""
     if obj.get("shape", "box") == "cylinder":  # the highest point of its two rim circles
