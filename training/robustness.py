@@ -36,8 +36,7 @@ from training.chunks import load_chunks
 from training.config import DatasetConfig, dataset_config_from_dict, save_json
 from training.dataset import load_manifest
 from training.fixture import episode_fixture
-from training.noise import apply_kinect_noise
-from training.render import Camera, draw_camera, render, scene_boxes
+from training.render import render_episode
 from training.seeding import episode_rng
 
 # The sweeps: factor -> values; the first value of each is the training condition.
@@ -65,43 +64,45 @@ class Stress:
 
 def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
                    stress: Stress) -> tuple[np.ndarray, np.ndarray, Intrinsics | None]:
-    """(noisy depth, noisy labels, the camera_info the model is given) of one episode."""
-    index = episode["episode"]
+    """(noisy depth, noisy labels, the camera_info the model is given) of one episode: the
+    dataset's own ``render_episode`` on the episode and config with the stress applied."""
     fixture = episode_fixture(episode, cfg.scene)
     if stress.support_tilt_deg:
-        azimuth = float(episode_rng(seed, index, "robustness").uniform(0.0, 360.0))
+        azimuth = float(episode_rng(seed, episode["episode"], "robustness").uniform(0.0, 360.0))
         fixture = dataclasses.replace(fixture, tilt_deg=stress.support_tilt_deg,
                                       tilt_azimuth_deg=azimuth)
-    camera_cfg = cfg.camera
-    if stress.camera_roll_deg:
-        camera_cfg = dataclasses.replace(camera_cfg, roll_deg=(stress.camera_roll_deg,) * 2)
-    camera, _ = draw_camera(camera_cfg, fixture, episode_rng(seed, index, "render"))
-    if stress.resolution:
-        camera = _resized(camera, *(int(v) for v in stress.resolution.split("x")))
-    episode = {**episode, "fixture": fixture.to_record()}
-    clean, labels, cosine = render(scene_boxes(episode, outcomes, cfg.scene),
-                                   fixture.room_floor_z, camera)
-    noise = cfg.noise.draw(episode_rng(seed, index, "sensor"))
-    if stress.noise_scale != 1.0:
-        s = stress.noise_scale
-        noise = dataclasses.replace(noise, sigma_disparity_px=noise.sigma_disparity_px * s,
-                                    lateral_sigma_px=noise.lateral_sigma_px * s,
-                                    speckle_rate=noise.speckle_rate * s)
-    depth, labels = apply_kinect_noise(clean, labels, cosine, camera.fx, noise,
-                                       episode_rng(seed, index, "noise"))
+    out = render_episode({**episode, "fixture": fixture.to_record()}, outcomes,
+                         _stressed_config(cfg, stress), seed)
     intrinsics = None
     if stress.camera_info:
+        camera = Intrinsics.from_record(out["record"]["camera"])
         f = camera.fx * (1.0 + stress.focal_error)
-        intrinsics = Intrinsics(camera.width, camera.height, f, f, camera.cx, camera.cy)
-    return depth, labels, intrinsics
+        intrinsics = dataclasses.replace(camera, fx=f, fy=f)
+    return out["depth"], out["labels"], intrinsics
 
 
-def _resized(camera: Camera, width: int, height: int) -> Camera:
-    """The same view at another size: focal length scaled with the width, centre kept."""
-    scale = width / camera.width
-    return dataclasses.replace(
-        camera, width=width, height=height, fx=camera.fx * scale, fy=camera.fy * scale,
-        cx=(camera.cx + 0.5) * scale - 0.5, cy=(camera.cy + 0.5) * height / camera.height - 0.5)
+def _stressed_config(cfg: DatasetConfig, stress: Stress) -> DatasetConfig:
+    """The camera and sensor of ``cfg`` with the stress's roll, size and noise scale."""
+    camera, noise = cfg.camera, cfg.noise
+    if stress.camera_roll_deg:
+        camera = dataclasses.replace(camera, roll_deg=(stress.camera_roll_deg,) * 2)
+    if stress.resolution:  # the same view at another size: focal length and offsets scaled
+        width, height = (int(v) for v in stress.resolution.split("x"))
+        scale = width / camera.width
+        camera = dataclasses.replace(
+            camera, width=width, height=height,
+            focal_px=tuple(f * scale for f in camera.focal_px),
+            principal_offset_px=camera.principal_offset_px * scale)
+    if stress.noise_scale != 1.0:
+        noise = dataclasses.replace(noise, **{
+            name: _scaled(getattr(noise, name), stress.noise_scale)
+            for name in ("sigma_disparity_px", "lateral_sigma_px", "speckle_rate")})
+    return dataclasses.replace(cfg, camera=camera, noise=noise)
+
+
+def _scaled(value: float | tuple[float, float], scale: float) -> float | tuple[float, float]:
+    """A sensor parameter (a value, or a range drawn per frame) times ``scale``."""
+    return tuple(v * scale for v in value) if isinstance(value, tuple) else value * scale
 
 
 def score_stress(seg: OutcomeSegmenter, items: list[tuple[dict, list[str]]],
