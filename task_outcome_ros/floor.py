@@ -30,6 +30,14 @@ over 3 mm (``bench/heights.py`` repeats the check on 200 validation images). Che
 record their version (``model`` normalisation ``floor_fit``); older ones keep version 1.
 Version 2 scores on a sparser grid in one float pass, so it also costs less than version 1.
 
+**Fixtures on a table.** With a table and the room floor below it in view, the lowest plane
+is the room floor, and heights from it would put the rim 0.7 m higher in some frames than in
+others. A checkpoint trained on such a task records ``support_above_floor``, the table-top
+heights its spec draws; the fit then looks again, among the points whose height above the
+first plane lies in that band (+-5 cm), for the plane the fixture stands on, and uses it when
+it holds at least ``SUPPORT_MIN_SHARE`` of the valid points. Without a room floor in view the
+first plane already is the table top and nothing lies in the band.
+
 Deterministic: the triples come from a generator with a fixed seed, so training, evaluation
 and the node compute the same heights for the same depth. Torch only, batched: training runs
 it on augmented batches and inference on a batch of one.
@@ -47,6 +55,8 @@ _SEED = 20141
 FLOOR_FIT = 2                 # the fit new checkpoints are trained on (see above)
 LEGACY_FLOOR_FIT = 1          # checkpoints that do not record one
 _INLIER_M = {1: 0.015, 2: 0.008}   # plane inlier band per version
+SUPPORT_MARGIN_M = 0.05       # around a table-top band (support_above_floor)
+SUPPORT_MIN_SHARE = 0.10      # of the valid points, for a table top to count as seen
 
 
 def backproject(depth: torch.Tensor, focal_over_width: float = FOCAL_OVER_WIDTH,
@@ -147,11 +157,23 @@ def _refine(flat_p: torch.Tensor, flat_v: torch.Tensor, normal: torch.Tensor,
 def height_above_floor(depth: torch.Tensor, valid: torch.Tensor,
                        focal_over_width: float = FOCAL_OVER_WIDTH,
                        intrinsics: torch.Tensor | None = None,
-                       version: int = FLOOR_FIT) -> torch.Tensor:
+                       version: int = FLOOR_FIT,
+                       support_above_floor: tuple[float, float] | None = None
+                       ) -> torch.Tensor:
     """(N, h, w) depth (metres) and validity (bool) -> (N, h, w) height in metres; 0 where
     invalid, and everywhere in an image with fewer than three valid pixels. ``intrinsics``:
-    see ``backproject``; ``version``: see ``fit_floor``."""
+    see ``backproject``; ``version``: see ``fit_floor``; ``support_above_floor``: the (min,
+    max) height of a table top above the room floor, to measure from the table when both are
+    in view (module docstring)."""
     points = backproject(depth.float(), focal_over_width, intrinsics)
     normal, offset = fit_floor(points, valid, version)
     height = (points * normal[:, None, None]).sum(-1) - offset[:, None, None]
+    if support_above_floor is not None:
+        lo, hi = support_above_floor
+        band = valid & (height > lo - SUPPORT_MARGIN_M) & (height < hi + SUPPORT_MARGIN_M)
+        seen = band.sum((1, 2)) >= SUPPORT_MIN_SHARE * valid.sum((1, 2)).clamp_min(1)
+        if bool(seen.any()):
+            top_normal, top_offset = fit_floor(points, band, version)
+            top = (points * top_normal[:, None, None]).sum(-1) - top_offset[:, None, None]
+            height = torch.where(seen[:, None, None], top, height)
     return torch.where(valid, height, torch.zeros_like(height))

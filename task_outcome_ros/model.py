@@ -15,7 +15,8 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    callers pass them when they know them (camera_info on the robot); without the key, or
    without intrinsics, heights come from the envelope's nominal camera. ``floor_fit`` is the
    version of ``floor.fit_floor`` the network was trained on; a checkpoint without it was
-   trained on version 1 (models up to 0.1.7) and keeps getting it.
+   trained on version 1 (models up to 0.1.7) and keeps getting it. ``support_above_floor``
+   (tasks on a table): heights from the table top when the room floor is in view too.
 
 The channels are computed in one place, ``network_input`` (torch), after the one resize,
 ``resize_depth`` (numpy, NaN-aware area average). ``preprocess`` (one numpy image) and
@@ -81,6 +82,13 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
                              f"{INTRINSICS_FROM_CAMERA_INFO!r} with a height channel, got "
                              f"{norm!r}")
         out["intrinsics"] = INTRINSICS_FROM_CAMERA_INFO
+    if "support_above_floor" in norm:
+        band = norm["support_above_floor"]
+        if ("height_scale_m" not in out or not isinstance(band, (list, tuple))
+                or len(band) != 2 or not 0 < float(band[0]) <= float(band[1])):
+            raise ValueError(f"normalisation 'support_above_floor' must be a (min, max) height "
+                             f"in metres with a height channel, got {norm!r}")
+        out["support_above_floor"] = [float(band[0]), float(band[1])]
     if not all(out.get(k, 1.0) > 0 for k in ("scale_m", "clip", *_HEIGHT_FIELDS)):
         raise ValueError(f"normalisation needs positive scales and clip, got {norm!r}")
     return out
@@ -191,7 +199,7 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
     if "height_scale_m" in norm:
         use = intrinsics if norm.get("intrinsics") == INTRINSICS_FROM_CAMERA_INFO else None
         height = height_above_floor(depth, has, norm["focal_over_width"], use,
-                                    norm["floor_fit"])
+                                    norm["floor_fit"], norm.get("support_above_floor"))
         channels.append((height / norm["height_scale_m"]).clamp(-norm["clip"], norm["clip"]))
     return torch.stack(channels, dim=1)
 

@@ -210,6 +210,34 @@ def test_sensor_parameters_given_as_ranges_are_drawn_per_frame_and_recorded():
     assert "sensor" not in fixed  # a spec without ranges records (and draws) nothing new
 
 
+def test_a_share_of_frames_gets_the_tof_sensor_and_camera_info_has_its_own_error():
+    import dataclasses
+
+    from training.config import CameraConfig, DatasetConfig, TofConfig
+    from training.render import render_episode, reported_camera
+
+    cfg = dataclasses.replace(
+        DatasetConfig(), tof=TofConfig(share=0.5, sigma_1m=(0.001, 0.004)),
+        camera=CameraConfig(info_focal_error=0.04, info_principal_error_px=4.0)).validate()
+    episode = {"episode": 0, "container_yaw": 0.2, "floor_z": 0.0, "objects": []}
+    records = [render_episode({**episode, "episode": k}, [], cfg, seed=2)["record"]
+               for k in range(16)]
+    models = [r["sensor"]["model"] for r in records]
+    assert {"tof", "kinect_v1"} == set(models)
+    assert all(0.001 <= r["sensor"]["sigma_1m"] <= 0.004 for r in records
+               if r["sensor"]["model"] == "tof")
+    for r in records:
+        true, info = r["camera"], reported_camera(r)
+        assert info is r["camera_info"] and info["fx"] == info["fy"]
+        assert abs(info["fx"] / true["fx"] - 1) <= 0.04 and info["fx"] != true["fx"]
+        assert abs(info["cx"] - true["cx"]) <= 4.0 and abs(info["cy"] - true["cy"]) <= 4.0
+    again = render_episode({**episode, "episode": 5}, [], cfg, seed=2)["record"]
+    assert again["sensor"] == records[5]["sensor"]
+    assert again["camera_info"] == records[5]["camera_info"]
+    plain = render_episode(episode, [], DatasetConfig(), seed=2)["record"]
+    assert "camera_info" not in plain and reported_camera(plain) is plain["camera"]
+
+
 def test_a_tilted_support_leans_gravity_and_looks_tilted_to_a_level_camera():
     tilted = Fixture(0.5, 0.5, 0.25, 0.02, 0.02, 0.0, 0.0, 0.0, 0.0, tilt_deg=6.0,
                      tilt_azimuth_deg=40.0)

@@ -171,3 +171,48 @@ def test_floor_fit_version_is_recorded_and_validated() -> None:
     with pytest.raises(ValueError, match="floor fit version"):
         height_above_floor(torch.ones(1, 4, 4), torch.ones(1, 4, 4, dtype=torch.bool),
                            version=7)
+
+
+def _table_scene(h: int = 120, w: int = 160) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+    """A table top 0.75 m above the room floor in the lower 55 % of the view, the room floor
+    above it (farther away, enough of it to be the lowest plane's winner), and a 0.2 m box
+    on the table."""
+    a = math.radians(45.0)
+    normal = np.array([0.0, -math.cos(a), -math.sin(a)])
+    f = FOCAL_OVER_WIDTH * w
+    u = (np.arange(w) - (w - 1) / 2) / f
+    v = (np.arange(h) - (h - 1) / 2) / f
+    rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((h, w))), -1)
+    along = rays @ normal
+    surface = np.zeros((h, w))            # height above the room floor of what each ray sees
+    table = np.zeros((h, w), bool)
+    table[int(0.45 * h):, :] = True
+    surface[table] = 0.75
+    box = np.zeros((h, w), bool)
+    box[int(0.6 * h): int(0.75 * h), w // 3: w // 2] = True
+    surface[box] = 0.95
+    depth = (surface - 2.0) / along
+    return (torch.from_numpy(depth.astype(np.float32))[None],
+            torch.ones(1, h, w, dtype=torch.bool), table & ~box)
+
+
+def test_a_table_task_measures_heights_from_the_table_top_not_the_room_floor() -> None:
+    depth, valid, table = _table_scene()
+    from_floor = height_above_floor(depth, valid)[0].numpy()
+    assert abs(np.median(from_floor[table]) - 0.75) < 0.01   # the lowest plane: the room floor
+    from_table = height_above_floor(depth, valid, support_above_floor=(0.7, 0.8))[0].numpy()
+    assert abs(np.median(from_table[table])) < 0.002
+    # Seen without the room floor, the lowest plane is already the table: nothing changes.
+    only_table = valid.clone()
+    only_table[0, : int(0.45 * depth.shape[1])] = False
+    a = height_above_floor(depth, only_table)[0].numpy()
+    b = height_above_floor(depth, only_table, support_above_floor=(0.7, 0.8))[0].numpy()
+    assert np.array_equal(a, b) and abs(np.median(a[table])) < 0.002
+
+
+def test_support_band_is_validated_and_kept_by_the_normalisation() -> None:
+    norm = dict(DEFAULT_NORMALISATION, support_above_floor=[0.7, 0.8])
+    assert check_normalisation(norm)["support_above_floor"] == [0.7, 0.8]
+    for bad in ([0.8, 0.7], [0.0, 0.5], 0.75, "table"):
+        with pytest.raises(ValueError, match="support_above_floor"):
+            check_normalisation(dict(DEFAULT_NORMALISATION, support_above_floor=bad))

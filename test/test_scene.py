@@ -13,7 +13,13 @@ import pytest
 import yaml
 
 from training.__main__ import main
-from training.config import ConfigError, DatasetConfig, dataset_config_from_dict, to_dict
+from training.config import (
+    NOISE_PARAMETERS,
+    ConfigError,
+    DatasetConfig,
+    dataset_config_from_dict,
+    to_dict,
+)
 from training.scene import SCENES_DIR, bundled_scenes, load_scene, read_spec
 
 pytestmark = pytest.mark.unit
@@ -33,8 +39,19 @@ def _tote_with(tmp_path: Path, section: str, field: str, value) -> Path:
 
 def test_bundled_specs_load_and_default_is_the_default_task():
     assert {"default", "tote"} <= set(bundled_scenes())
-    default = load_scene("default")
-    assert default == dataclasses.replace(DatasetConfig(), task="default")
+    default, nominal = load_scene("default"), DatasetConfig()
+    # The default spec is the nominal scene with what real cells vary randomised: without
+    # its tilt, roll, calibration error and second sensor it is the configs' defaults, and
+    # every sensor range holds the nominal value.
+    assert dataclasses.replace(default.scene, support_tilt_deg=(0.0, 0.0)) == nominal.scene
+    assert dataclasses.replace(default.camera, roll_deg=(0.0, 0.0), info_focal_error=0.0,
+                               info_principal_error_px=0.0) == nominal.camera
+    assert default.tof.share > 0 and nominal.tof.share == 0
+    assert default.discover == nominal.discover
+    for name in NOISE_PARAMETERS:
+        lo, hi = default.noise.bounds(name)
+        assert lo <= getattr(nominal.noise, name) <= hi, name
+    assert any(isinstance(getattr(default.noise, n), tuple) for n in NOISE_PARAMETERS)
     tote = load_scene("tote")
     assert tote.task == "tote" and tote.scene.table_size is not None
     assert set(tote.scene.shapes) == {"box", "cylinder"}
@@ -63,10 +80,13 @@ def test_a_spec_may_leave_fields_to_the_default_task(tmp_path):
     ("scene", "max_objects", 2.5, ["scene.max_objects", "whole number"]),
     ("scene", "shape_weights", {"box": 1.0, "torus": 1.0}, ["shape_weights", "torus"]),
     ("scene", "table_size", [0.6, 0.6], ["scene.table_size", "along x", "make it at least"]),
-    ("camera", "distance", [0.2, 1.3], ["camera.distance", "0.3-4.5 m", "could not see"]),
+    ("camera", "distance", [0.2, 1.3], ["camera.distance", "0.3-3.5 m", "could not see"]),
     ("camera", "elevation_deg", [45.0, 95.0], ["camera.elevation_deg[1]", "[5.0, 90.0]"]),
     ("camera", "target_offset", 0.2, ["camera.target_offset", "could leave the fixture"]),
-    ("noise", "model", "tof", ["noise.model", "kinect_v1"]),
+    ("noise", "model", "tof", ["noise.model", "kinect_v1", "the tof section"]),
+    ("tof", "share", 1.5, ["tof.share", "[0.0, 1.0]"]),
+    ("tof", "max_range", 1.0, ["camera.distance", "ToF sensor", "could not see"]),
+    ("camera", "info_focal_error", 0.5, ["camera.info_focal_error", "[0.0, 0.2]"]),
     ("noise", "sigma_disparity_px", [0.1, 0.03], ["noise.sigma_disparity_px", "min must not"]),
     ("noise", "sigma_disparity_px", [0.03, 3.0], ["noise.sigma_disparity_px[1]", "[0.0, 2.0]"]),
     ("noise", "speckle_max_radius_px", [1, 2.5], ["speckle_max_radius_px[1]", "whole number"]),

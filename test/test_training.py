@@ -378,7 +378,13 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
     assert not np.allclose(np.nan_to_num(tilted), np.nan_to_num(depth))
 
     ckpt = make_checkpoint(tmp_path / "success_everywhere.pt", favour=SUCCESS)
-    sweeps = {"camera_roll_deg": (0.0, 10.0), "resolution": ("640x480", "320x240")}
+    tof, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
+                               Stress(sensor_model="tof"))
+    kinect, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
+                                  Stress(sensor_model="kinect_v1"))
+    assert not np.allclose(np.nan_to_num(tof), np.nan_to_num(kinect))
+    sweeps = {"camera_roll_deg": (0.0, 10.0), "resolution": ("640x480", "320x240"),
+              "sensor_model": ("", "tof")}
     report = run_robustness(ckpt, small_run, tmp_path / "rob", images=2, sweeps=sweeps,
                             progress=False)
     saved = load_json(tmp_path / "rob" / "robustness.json")
@@ -398,3 +404,45 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
                        for t in truths)
             assert got == pytest.approx(only / len(val)), (factor, value)
     assert (tmp_path / "rob" / "robustness.png").stat().st_size > 5000
+
+
+def test_the_independent_set_is_cast_by_pybullet_and_scored_by_evaluate(small_run, tmp_path):
+    """Its clean images agree with the analytic renderer on the same view (same geometry,
+    another caster), its noise is its own, and evaluate scores it like any run."""
+    from training.chunks import load_chunks
+    from training.config import dataset_config_from_dict, load_json
+    from training.fixture import episode_fixture
+    from training.independent import RayWorld, draw_view, make_independent_set
+    from training.render import Camera, read_pair, render, scene_boxes
+
+    cfg = dataset_config_from_dict(load_json(small_run / "config.json"))
+    episodes = load_chunks(small_run / "simulate", cfg.episodes, cfg.chunk_size)
+    outcomes = load_json(small_run / "outcomes.json")["outcomes"]
+    fixture = episode_fixture(episodes[1], cfg.scene)
+    view = draw_view(cfg, fixture, np.random.default_rng(3))
+    world = RayWorld()
+    try:
+        theirs, their_labels, _ = world.cast(view, world.build(episodes[1], outcomes[1],
+                                                               cfg.scene))
+    finally:
+        world.close()
+    camera = Camera(view["width"], view["height"], view["fx"], view["fy"], view["cx"],
+                    view["cy"], np.array(view["position"]), np.array(view["rotation"]))
+    ours, our_labels, _ = render(scene_boxes(episodes[1], outcomes[1], cfg.scene),
+                                 fixture.room_floor_z, camera)
+    assert np.mean(our_labels == their_labels) > 0.98
+    both = np.isfinite(ours) & np.isfinite(theirs)
+    assert both.mean() > 0.95 and np.median(np.abs(ours[both] - theirs[both])) < 1e-3
+
+    out = tmp_path / "independent"
+    manifest = make_independent_set(small_run, out, 3, seed=1, progress=False)
+    assert [im["split"] for im in manifest["images"]] == ["val"] * 3
+    for im in manifest["images"]:
+        depth, labels = read_pair(out, im["episode"])
+        assert depth.shape == (cfg.camera.height, cfg.camera.width)
+        assert 0.02 < np.isnan(depth).mean() < 0.5 and (labels[np.isnan(depth)] == 255).all()
+        assert abs(im["camera_info"]["fx"] / im["camera"]["fx"] - 1) <= 0.02
+    ckpt = make_checkpoint(tmp_path / "success_everywhere.pt", favour=SUCCESS)
+    report = evaluate(ckpt, out, "val", tmp_path / "eval_independent", backend="torch",
+                      progress=False)
+    assert report["n_images"] == 3 and report["data"] == str(out)

@@ -281,6 +281,24 @@ def cmd_robustness(args) -> None:
     print(f"robustness: {report['images']} images per point -> {out / 'robustness.json'}")
 
 
+def add_independent_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", type=Path, required=True,
+                   help="dataset run whose simulated episodes and outcomes are used")
+    p.add_argument("--out", type=Path, required=True, help="folder for the independent set")
+    p.add_argument("--images", type=positive_int, default=300,
+                   help="images, one per episode from the first (default 300)")
+    p.add_argument("--seed", type=non_negative_int, default=0,
+                   help="seed of the cameras and the noise (default 0)")
+
+
+def cmd_independent(args) -> None:
+    from training.independent import make_independent_set
+
+    manifest = make_independent_set(args.data, args.out, args.images, seed=args.seed)
+    print(f"independent: {len(manifest['images'])} images in {args.out}; score a model with "
+          f"python -m training evaluate --data {args.out} --checkpoint MODEL")
+
+
 def cmd_demo(args) -> int:
     from training.demo import demo_main
 
@@ -304,6 +322,8 @@ COMMANDS = {
     "run": (cmd_run, "dataset + train + evaluate"),
     "export-bag": (cmd_export_bag, "write a run's images as a rosbag2 bag (+ ground truth)"),
     "robustness": (cmd_robustness, "score a model on stress sets, one factor at a time"),
+    "independent": (cmd_independent, "an evaluation set made by pybullet ray tests and a "
+                                     "separately written noise model"),
     "demo": (cmd_demo, "a small simulated bag through the live outcome_node, scored"),
 }
 
@@ -326,6 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
             continue
         if name == "robustness":
             add_robustness_args(p)
+            continue
+        if name == "independent":
+            add_independent_args(p)
             continue
         add_dataset_args(p)
         if name in ("train", "run"):

@@ -44,7 +44,7 @@ def _check_interval(owner: str, name: str, interval: tuple[float, float], lo: fl
 
 
 SHAPES = ("box", "cylinder")
-NOISE_MODELS = ("kinect_v1",)
+NOISE_MODELS = ("kinect_v1",)   # noise: structured light; tof: a second, time-of-flight model
 
 
 @dataclass(frozen=True)
@@ -191,6 +191,10 @@ class CameraConfig:
     azimuth_deg: tuple[float, float] = (0.0, 360.0)   # around the fixture, from its x axis
     roll_deg: tuple[float, float] = (0.0, 0.0)        # about the optical axis
     target_offset: float = 0.1            # m, look-at point within this of the fixture centre
+    # What camera_info reports may differ from the true camera (calibration error): per frame
+    # fx = fy reported off by up to +-this fraction, cx and cy by up to +-this many pixels.
+    info_focal_error: float = 0.0
+    info_principal_error_px: float = 0.0
 
     @property
     def nominal_focal_px(self) -> float:
@@ -208,7 +212,15 @@ class CameraConfig:
         _check_interval(o, "azimuth_deg", self.azimuth_deg, -360.0, 720.0)
         _check_interval(o, "roll_deg", self.roll_deg, -180.0, 180.0)
         _check_range(o, "target_offset", self.target_offset, 0.0, 1.0)
+        _check_range(o, "info_focal_error", self.info_focal_error, 0.0, 0.2)
+        _check_range(o, "info_principal_error_px", self.info_principal_error_px, 0.0,
+                     min(self.width, self.height) / 8)
         return self
+
+    @property
+    def info_differs(self) -> bool:
+        """Whether camera_info is drawn apart from the true camera (else it is the camera)."""
+        return self.info_focal_error > 0 or self.info_principal_error_px > 0
 
 
 @dataclass(frozen=True)
@@ -232,23 +244,19 @@ class NoiseConfig:
     speckle_max_radius_px: int = 3
     min_range: float = 0.5                # m
     max_range: float = 4.5                # m
+    # Calibration drift: a per-frame disparity offset, N(0, this) px, and a smooth random
+    # disparity field (a few cycles across the image) of this standard deviation in px.
+    bias_disparity_px: float = 0.0
+    lowfreq_disparity_px: float = 0.0
 
     def validate(self) -> NoiseConfig:
         o = "noise"
         if not isinstance(self.enabled, bool):
             raise ConfigError(f"{o}.enabled = {self.enabled!r}: expected true or false")
         if self.model not in NOISE_MODELS:
-            raise ConfigError(f"{o}.model = {self.model!r}: expected one of {NOISE_MODELS}")
-        for name, (lo, hi) in _NOISE_LIMITS.items():
-            value = getattr(self, name)
-            check = _check_int if name in _NOISE_INTS else _check_range
-            if isinstance(value, (tuple, list)):
-                _check_interval(o, name, value, lo, hi)
-                if name in _NOISE_INTS:
-                    for k, v in enumerate(value):
-                        _check_int(o, f"{name}[{k}]", v, lo, hi)
-            else:
-                check(o, name, value, lo, hi)
+            raise ConfigError(f"{o}.model = {self.model!r}: expected one of {NOISE_MODELS} "
+                              "(a time-of-flight sensor is described in the tof section)")
+        _validate_drawn(o, self, _NOISE_LIMITS, _NOISE_INTS)
         # Every draw must keep the ramp and the range ordered.
         if self.bounds("grazing_full_deg")[0] < self.bounds("grazing_start_deg")[1]:
             raise ConfigError(f"{o}.grazing_full_deg = {self.grazing_full_deg!r} must not be "
@@ -271,14 +279,7 @@ class NoiseConfig:
         """This frame's sensor: every parameter given as a (min, max) range drawn uniformly
         (whole numbers for the integer ones), in field order; fixed ones stay, drawing
         nothing, so a spec without ranges makes exactly the frames it always made."""
-        drawn = {}
-        for name in _NOISE_LIMITS:
-            value = getattr(self, name)
-            if isinstance(value, (tuple, list)):
-                lo, hi = value
-                drawn[name] = (int(rng.integers(lo, hi + 1)) if name in _NOISE_INTS
-                               else float(rng.uniform(lo, hi)))
-        return dataclasses.replace(self, **drawn) if drawn else self
+        return _draw_parameters(self, _NOISE_LIMITS, _NOISE_INTS, rng)
 
     def drawn_per_frame(self) -> bool:
         return any(isinstance(getattr(self, n), (tuple, list)) for n in _NOISE_LIMITS)
@@ -292,9 +293,86 @@ _NOISE_LIMITS = {
     "lateral_sigma_px": (0.0, 5.0), "grazing_start_deg": (0.0, 90.0),
     "grazing_full_deg": (0.0, 90.0), "speckle_rate": (0.0, 0.05),
     "speckle_max_radius_px": (0, 20), "min_range": (0.0, 10.0), "max_range": (0.0, 20.0),
+    "bias_disparity_px": (0.0, 2.0), "lowfreq_disparity_px": (0.0, 2.0),
 }
 _NOISE_INTS = ("disparity_subpixel", "speckle_max_radius_px")
 NOISE_PARAMETERS = tuple(_NOISE_LIMITS)  # what a manifest records of a frame's drawn sensor
+
+
+@dataclass(frozen=True)
+class TofConfig:
+    """A time-of-flight sensor (training/tof.py), drawn instead of ``noise`` for a ``share`` of
+    the frames: structurally different errors (no projector shadows, no disparity steps, but
+    flying pixels, multipath and amplitude dropout), so no single noise signature is learnt.
+
+    Each parameter is a fixed value or a (min, max) range drawn per frame, as for ``noise``."""
+
+    share: float = 0.0                    # fraction of frames; 0 = never (draws nothing)
+    sigma_1m: float = 0.002               # m, axial sd of a facing surface at 1 m (grows z^2)
+    amplitude_cutoff: float = 0.02        # dropout below this return amplitude cos / z^2 ...
+    amplitude_soft: float = 0.02          # ... ramping to none at cutoff + soft
+    flying_pixel_rate: float = 0.5        # share of depth-edge pixels mixed fore/background
+    edge_jump_m: float = 0.05             # a depth edge: neighbours this much apart
+    multipath_gain: float = 0.3           # depth excess in concave corners, x the hollow depth
+    multipath_window_px: int = 15         # size of the neighbourhood that defines a hollow
+    depth_bias_m: float = 0.0             # per-frame offset, N(0, this)
+    dropout_rate: float = 0.0005          # isolated invalid pixels per pixel
+    min_range: float = 0.2                # m
+    max_range: float = 5.0                # m
+
+    def validate(self) -> TofConfig:
+        o = "tof"
+        _check_range(o, "share", self.share, 0.0, 1.0)
+        _validate_drawn(o, self, _TOF_LIMITS, _TOF_INTS)
+        if self.share > 0 and self.bounds("max_range")[0] <= self.bounds("min_range")[1]:
+            raise ConfigError(f"{o}.max_range = {self.max_range!r} must exceed min_range = "
+                              f"{self.min_range!r}")
+        return self
+
+    bounds = NoiseConfig.bounds
+    midpoint = NoiseConfig.midpoint
+
+    def draw(self, rng: np.random.Generator) -> TofConfig:
+        """This frame's ToF sensor, drawn like ``NoiseConfig.draw``."""
+        return _draw_parameters(self, _TOF_LIMITS, _TOF_INTS, rng)
+
+
+_TOF_LIMITS = {
+    "sigma_1m": (0.0, 0.1), "amplitude_cutoff": (0.0, 1.0), "amplitude_soft": (0.0, 1.0),
+    "flying_pixel_rate": (0.0, 1.0), "edge_jump_m": (0.005, 1.0),
+    "multipath_gain": (0.0, 2.0), "multipath_window_px": (3, 99),
+    "depth_bias_m": (0.0, 0.1), "dropout_rate": (0.0, 0.05),
+    "min_range": (0.0, 10.0), "max_range": (0.0, 20.0),
+}
+_TOF_INTS = ("multipath_window_px",)
+TOF_PARAMETERS = tuple(_TOF_LIMITS)
+
+
+def _validate_drawn(owner: str, cfg: Any, limits: dict, ints: tuple[str, ...]) -> None:
+    """Every sensor parameter a fixed value or a (min, max) range within its limits."""
+    for name, (lo, hi) in limits.items():
+        value = getattr(cfg, name)
+        check = _check_int if name in ints else _check_range
+        if isinstance(value, (tuple, list)):
+            _check_interval(owner, name, value, lo, hi)
+            if name in ints:
+                for k, v in enumerate(value):
+                    _check_int(owner, f"{name}[{k}]", v, lo, hi)
+        else:
+            check(owner, name, value, lo, hi)
+
+
+def _draw_parameters(cfg: Any, limits: dict, ints: tuple[str, ...], rng: np.random.Generator):
+    """``cfg`` with every parameter given as a range drawn uniformly (whole numbers for the
+    integer ones), in field order; fixed ones stay and draw nothing."""
+    drawn = {}
+    for name in limits:
+        value = getattr(cfg, name)
+        if isinstance(value, (tuple, list)):
+            lo, hi = value
+            drawn[name] = (int(rng.integers(lo, hi + 1)) if name in ints
+                           else float(rng.uniform(lo, hi)))
+    return dataclasses.replace(cfg, **drawn) if drawn else cfg
 
 
 @dataclass(frozen=True)
@@ -332,6 +410,7 @@ class DatasetConfig:
     scene: SceneConfig = field(default_factory=SceneConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
+    tof: TofConfig = field(default_factory=TofConfig)
     discover: DiscoverConfig = field(default_factory=DiscoverConfig)
 
     def validate(self) -> DatasetConfig:
@@ -345,6 +424,7 @@ class DatasetConfig:
         self.scene.validate()
         self.camera.validate()
         self.noise.validate()
+        self.tof.validate()
         self.discover.validate()
         self._validate_camera_sees_fixture()
         return self
@@ -360,6 +440,12 @@ class DatasetConfig:
                 f"camera.distance = {list(self.camera.distance)} m: the sensor measures "
                 f"{sensor_near}-{sensor_far} m (noise.min_range, noise.max_range), so it "
                 "could not see the fixture from every distance")
+        tof_near, tof_far = self.tof.bounds("min_range")[1], self.tof.bounds("max_range")[0]
+        if self.noise.enabled and self.tof.share > 0 and (near < tof_near or far > tof_far):
+            raise ConfigError(
+                f"camera.distance = {list(self.camera.distance)} m: the ToF sensor measures "
+                f"{tof_near}-{tof_far} m (tof.min_range, tof.max_range), so it could not "
+                "see the fixture from every distance")
         smallest_half = min(self.scene.inner_size_x[0], self.scene.inner_size_y[0]) / 2
         if self.camera.target_offset > smallest_half:
             raise ConfigError(

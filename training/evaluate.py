@@ -37,7 +37,7 @@ from training.hard_cases import (
     rim_gap_bin,
     rim_gap_bin_names,
 )
-from training.render import read_pair
+from training.render import read_pair, reported_camera
 
 
 def confusion(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
@@ -95,7 +95,7 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
     conf = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
     truth_p, pred_p, rows, times = [], [], [], []
     # What camera_info would carry for each image (None: evaluated without it).
-    cameras = {im["episode"]: Intrinsics.from_record(im["camera"]) if camera_info else None
+    cameras = {im["episode"]: Intrinsics.from_record(reported_camera(im)) if camera_info else None
                for im in images}
     for im in tqdm(images, desc=f"evaluate {split}", disable=not progress, unit="img"):
         depth, labels = read_pair(data_dir, im["episode"])

@@ -24,7 +24,7 @@ from task_outcome_ros.cli_args import positive_float, positive_int
 from task_outcome_ros.ground_truth import GROUND_TRUTH_FILE
 from task_outcome_ros.labels import PRESENCE_MIN_PIXELS
 from training.dataset import load_manifest
-from training.render import image_paths, read_pair
+from training.render import image_paths, read_pair, reported_camera
 
 # 2023-11-14T22:13:20Z. Fixed rather than the wall clock, so exports are reproducible.
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
@@ -76,7 +76,7 @@ def export_bag(run_dir: Path, bag: Path | None = None, *, split: str = "val",
                                         disable=not progress)):
             depth, _ = read_pair(run_dir, im["episode"])
             height, width = depth.shape
-            cam = im["camera"]
+            cam = reported_camera(im)
             if (cam["width"], cam["height"]) != (width, height):
                 raise ValueError(f"{run_dir / 'manifest.json'}: episode {im['episode']} camera "
                                  f"is {cam['width']} x {cam['height']}, its image {width} x "

@@ -24,6 +24,9 @@ The model runs at full resolution, in this order (docs/interface.md §4):
    z^2 / (fx b n) in depth (:func:`quantisation_step`). Near grazing angles sigma_d grows by
    Nguyen's angular term, ``grazing_sigma``/sqrt(z) * theta^2/(pi/2 - theta)^2 metres, converted
    to disparity (theta capped at ``grazing_full_deg`` and at 85 degrees).
+   Calibration drift, when the spec asks for it: a per-frame disparity offset
+   N(0, ``bias_disparity_px``) and a smooth random field of sd ``lowfreq_disparity_px`` (a
+   4 x 3 grid of normals, bicubically upsampled: a few cycles across the image).
 5. **Speckle holes**: seeds at rate ``speckle_rate`` per pixel grown to discs of radius
    0..``speckle_max_radius_px`` (one ``cv2.dilate`` per radius).
 6. **Range limits**: noisy depth outside [``min_range``, ``max_range``] is invalid.
@@ -194,6 +197,7 @@ def apply_kinect_noise(depth: np.ndarray, labels: np.ndarray, cos_incidence: np.
                          / ((np.float32(np.pi / 2) - th) ** 2 * np.sqrt(z)))
             sigma_d += grazing_m * disparity / z               # dz -> dd: d(fb/z) = fb/z^2 dz
         noisy = disparity + _standard_normal(rng, (h, w)) * sigma_d
+        noisy += calibration_drift((h, w), cfg, rng)
         n = np.float32(cfg.disparity_subpixel)
         noisy = np.rint(noisy * n) / n
         valid &= noisy > 0
@@ -208,6 +212,19 @@ def apply_kinect_noise(depth: np.ndarray, labels: np.ndarray, cos_incidence: np.
     z_out[~valid] = np.nan
     lab[~valid] = IGNORE
     return z_out.astype(np.float32, copy=False), lab
+
+
+def calibration_drift(shape: tuple[int, int], cfg: NoiseConfig, rng: np.random.Generator
+                      ) -> np.ndarray | np.float32:
+    """Disparity error (px) common to many pixels: a per-frame offset plus a smooth field.
+    Draws nothing when both are 0, so specs without drift make the frames they always made."""
+    drift = np.float32(0.0)
+    if cfg.bias_disparity_px > 0:
+        drift = np.float32(rng.normal(0.0, cfg.bias_disparity_px))
+    if cfg.lowfreq_disparity_px > 0:
+        grid = rng.normal(0.0, cfg.lowfreq_disparity_px, size=(3, 4)).astype(np.float32)
+        drift = drift + cv2.resize(grid, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+    return drift
 
 
 def projector_shadow(disparity: np.ndarray, tolerance_px: float = SHADOW_TOLERANCE_PX

@@ -27,11 +27,18 @@ from task_outcome_ros.labels import (
     outcomes_present,
 )
 from training.chunks import load_chunks, run_chunks
-from training.config import NOISE_PARAMETERS, CameraConfig, DatasetConfig, SceneConfig
+from training.config import (
+    NOISE_PARAMETERS,
+    TOF_PARAMETERS,
+    CameraConfig,
+    DatasetConfig,
+    SceneConfig,
+)
 from training.fixture import Fixture, _uniform, episode_fixture
 from training.geometry import quat_to_matrix
 from training.noise import apply_kinect_noise
 from training.seeding import episode_rng, episode_seed
+from training.tof import apply_tof_noise
 
 NEAR = 0.05  # m: hits closer than this to the camera are ignored
 
@@ -267,11 +274,7 @@ def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
     camera, draws = draw_camera(cfg.camera, fixture, episode_rng(seed, index, "render"))
     clean, labels, cosine = render(scene_boxes(episode, outcomes, cfg.scene),
                                    fixture.room_floor_z, camera)
-    # This frame's sensor: parameters the spec gives as ranges are drawn from a stream of
-    # their own, so fixed specs draw (and make) exactly what they always did.
-    sensor = cfg.noise.draw(episode_rng(seed, index, "sensor"))
-    noisy, noisy_labels = apply_kinect_noise(clean, labels, cosine, camera.fx, sensor,
-                                             episode_rng(seed, index, "noise"))
+    noisy, noisy_labels, sensor = apply_sensor(clean, labels, cosine, camera, cfg, seed, index)
     record = {
         "episode": index,
         "seed": {"render": episode_seed(seed, index, "render"),
@@ -282,9 +285,52 @@ def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
         "present": outcomes_present(noisy_labels),
         "pixel_counts": outcome_pixel_counts(noisy_labels),
     }
-    if cfg.noise.drawn_per_frame():
-        record["sensor"] = {name: getattr(sensor, name) for name in NOISE_PARAMETERS}
+    if sensor is not None:
+        record["sensor"] = sensor
+    if cfg.camera.info_differs:
+        record["camera_info"] = draw_camera_info(camera, cfg.camera,
+                                                 episode_rng(seed, index, "camera_info"))
     return {"clean": clean, "depth": noisy, "labels": noisy_labels, "record": record}
+
+
+def apply_sensor(clean: np.ndarray, labels: np.ndarray, cosine: np.ndarray, camera: Camera,
+                 cfg: DatasetConfig, seed: int, index: int
+                 ) -> tuple[np.ndarray, np.ndarray, dict | None]:
+    """This frame's sensor model and parameters, drawn, then applied. Returns (depth, labels,
+    the sensor's record or None when nothing was drawn). Each draw has a stream of its own, so
+    a spec with one sensor and fixed values draws (and makes) exactly what it always did."""
+    use_tof = (cfg.tof.share > 0 and cfg.noise.enabled
+               and episode_rng(seed, index, "sensor_model").random() < cfg.tof.share)
+    if use_tof:
+        tof = cfg.tof.draw(episode_rng(seed, index, "sensor"))
+        depth, noisy_labels = apply_tof_noise(clean, labels, cosine, tof,
+                                              episode_rng(seed, index, "noise"))
+        return depth, noisy_labels, {"model": "tof",
+                                     **{n: getattr(tof, n) for n in TOF_PARAMETERS}}
+    sensor = cfg.noise.draw(episode_rng(seed, index, "sensor"))
+    depth, noisy_labels = apply_kinect_noise(clean, labels, cosine, camera.fx, sensor,
+                                             episode_rng(seed, index, "noise"))
+    if not (cfg.noise.drawn_per_frame() or cfg.tof.share > 0):
+        return depth, noisy_labels, None
+    return depth, noisy_labels, {"model": sensor.model,
+                                 **{n: getattr(sensor, n) for n in NOISE_PARAMETERS}}
+
+
+def draw_camera_info(camera: Camera, envelope: CameraConfig, rng: np.random.Generator
+                     ) -> dict:
+    """The intrinsics camera_info reports for ``camera``: off by the envelope's calibration
+    error (fx = fy scaled by 1 + U(-e, e), cx and cy shifted by U(-p, p) px)."""
+    f = camera.fx * (1.0 + float(rng.uniform(-envelope.info_focal_error,
+                                             envelope.info_focal_error)))
+    dc = rng.uniform(-envelope.info_principal_error_px, envelope.info_principal_error_px, 2)
+    return {"width": camera.width, "height": camera.height, "fx": f, "fy": f,
+            "cx": camera.cx + float(dc[0]), "cy": camera.cy + float(dc[1])}
+
+
+def reported_camera(record: dict) -> dict:
+    """The camera an image's camera_info gives the node: its calibration-error draw when the
+    spec has one, else the true camera."""
+    return record.get("camera_info", record["camera"])
 
 
 # ---- on-disk format: 16-bit PNG depth in mm (0 = invalid, as a Kinect's 16UC1) + PNG labels --

@@ -9,12 +9,16 @@ image-level metric. Factors, each swept beyond what training drew:
 - ``support_tilt_deg``: the support seen tilted (towards a direction drawn per image); the
   physics stays that of the level support, so only what the camera sees changes;
 - ``camera_roll_deg``: the camera turned about its optical axis;
-- ``noise_scale``: the sensor's disparity noise, edge jitter and speckle times this factor;
+- ``noise_scale``: the sensor's disparity noise, edge jitter and speckle (ToF: axial noise and
+  dropouts) times this factor;
+- ``sensor_model``: every frame from one sensor model (``kinect_v1`` structured light, or
+  ``tof``), instead of the spec's mix;
 - ``focal_error``: camera_info's focal length off by this fraction (the true camera is not);
 - ``camera_info``: with and without camera_info;
 - ``resolution``: other image sizes, with the focal length scaled to keep the field of view.
 
-There is one sensor model so far, so no sweep over sensor models. Writes ``robustness.json``
+Calibration error the spec draws for camera_info is left out of every point, so that
+``focal_error`` is the only one. Writes ``robustness.json``
 (per factor its values and the all-correct at each, with the image count) and
 ``robustness.png`` beside it.
 """
@@ -44,6 +48,7 @@ SWEEPS: dict[str, tuple] = {
     "support_tilt_deg": (0.0, 1.5, 3.0, 4.5, 6.0),
     "camera_roll_deg": (0.0, 5.0, 10.0, 20.0),
     "noise_scale": (1.0, 0.5, 2.0, 3.0),
+    "sensor_model": ("", "kinect_v1", "tof"),
     "focal_error": (0.0, -0.08, -0.04, 0.04, 0.08),
     "camera_info": (True, False),
     "resolution": ("640x480", "320x240", "1280x720"),
@@ -57,6 +62,7 @@ class Stress:
     support_tilt_deg: float = 0.0
     camera_roll_deg: float = 0.0
     noise_scale: float = 1.0
+    sensor_model: str = ""  # "" = the spec's mix
     focal_error: float = 0.0
     camera_info: bool = True
     resolution: str = ""   # "WxH"; "" = the envelope's own
@@ -82,8 +88,10 @@ def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
 
 
 def _stressed_config(cfg: DatasetConfig, stress: Stress) -> DatasetConfig:
-    """The camera and sensor of ``cfg`` with the stress's roll, size and noise scale."""
-    camera, noise = cfg.camera, cfg.noise
+    """The camera and sensor of ``cfg`` with the stress's roll, size, sensor and noise scale,
+    and camera_info exact (the stress's focal error is applied by ``stressed_frame``)."""
+    camera = dataclasses.replace(cfg.camera, info_focal_error=0.0, info_principal_error_px=0.0)
+    noise, tof = cfg.noise, cfg.tof
     if stress.camera_roll_deg:
         camera = dataclasses.replace(camera, roll_deg=(stress.camera_roll_deg,) * 2)
     if stress.resolution:  # the same view at another size: focal length and offsets scaled
@@ -97,7 +105,12 @@ def _stressed_config(cfg: DatasetConfig, stress: Stress) -> DatasetConfig:
         noise = dataclasses.replace(noise, **{
             name: _scaled(getattr(noise, name), stress.noise_scale)
             for name in ("sigma_disparity_px", "lateral_sigma_px", "speckle_rate")})
-    return dataclasses.replace(cfg, camera=camera, noise=noise)
+        tof = dataclasses.replace(tof, **{
+            name: _scaled(getattr(tof, name), stress.noise_scale)
+            for name in ("sigma_1m", "dropout_rate")})
+    if stress.sensor_model:
+        tof = dataclasses.replace(tof, share=1.0 if stress.sensor_model == "tof" else 0.0)
+    return dataclasses.replace(cfg, camera=camera, noise=noise, tof=tof)
 
 
 def _scaled(value: float | tuple[float, float], scale: float) -> float | tuple[float, float]:
@@ -171,7 +184,7 @@ def plot_robustness(path: Path, report: dict) -> None:
         ax.axis("off")
     for ax, (factor, entry) in zip(axes.ravel(), factors.items()):
         ax.axis("on")
-        labels = [str(v) for v in entry["values"]]
+        labels = [str(v) if v != "" else "as trained" for v in entry["values"]]
         ax.plot(range(len(labels)), entry["image_all_correct"], "o-")
         ax.set_xticks(range(len(labels)), labels)
         ax.set_ylim(0.0, 1.02)

@@ -80,11 +80,13 @@ def task_normalisation(dataset: DatasetConfig) -> dict:
     """The network input's normalisation for a task: depth centred on the envelope's middle
     distance, heights in units of the tallest wall (the rim sits at 1 or below), and the
     envelope's middle focal length as the nominal camera. The default task's is exactly
-    ``model.DEFAULT_NORMALISATION``."""
+    ``model.DEFAULT_NORMALISATION``. A task on a table measures heights from its top."""
     norm = dict(DEFAULT_NORMALISATION)
     norm["offset_m"] = (dataset.camera.distance[0] + dataset.camera.distance[1]) / 2
     norm["height_scale_m"] = dataset.scene.max_wall_height
     norm["focal_over_width"] = dataset.camera.nominal_focal_px / dataset.camera.width
+    if dataset.scene.table_size is not None:  # heights from the table top, not the room floor
+        norm["support_above_floor"] = list(dataset.scene.table_height)
     return norm
 
 
@@ -365,8 +367,10 @@ def resume_differences(saved: dict, cfg: TrainConfig, saved_precision: str | Non
 
 def manifest_intrinsics(manifest: dict, indices: np.ndarray) -> np.ndarray:
     """(N, 4) float32 ``camera.Intrinsics.normalised`` of the images ``indices``, from the
-    camera each was rendered with (what camera_info gives the node on the robot)."""
-    cameras = {im["episode"]: im["camera"] for im in manifest["images"]}
+    camera_info each was rendered with (what the node is given on the robot)."""
+    from training.render import reported_camera
+
+    cameras = {im["episode"]: reported_camera(im) for im in manifest["images"]}
     return np.stack([Intrinsics.from_record(cameras[int(i)]).normalised() for i in indices]
                     ) if len(indices) else np.zeros((0, 4), np.float32)
 
