@@ -21,6 +21,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import percentiles  # noqa: E402
 from inference import load_frames  # noqa: E402
 
+from task_outcome_ros.topics import DEPTH_TOPIC, LABELS_TOPIC, STATUS_TOPIC  # noqa: E402
+
 LATENCY_SEC, THROUGHPUT_SEC, PRIME_SEC = 1, 2, 3  # header.stamp.sec tags the phase
 PRIME_TRIES, GIVE_UP_AFTER, LATENCY_TIMEOUT_S = 20, 30, 0.5  # p95 is ~20-50 ms
 
@@ -78,7 +80,7 @@ def main() -> None:
                          else ReliabilityPolicy.RELIABLE)
     sub_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
                          reliability=ReliabilityPolicy.RELIABLE)
-    pub = node.create_publisher(Image, "depth/image_raw", pub_qos)
+    pub = node.create_publisher(Image, DEPTH_TOPIC, pub_qos)
     info_pub = node.create_publisher(CameraInfo, "depth/camera_info", pub_qos)
     labels_at: dict[tuple[int, int], float] = {}
     status_of: dict[tuple[int, int], dict[str, str]] = {}
@@ -93,8 +95,8 @@ def main() -> None:
         last_status.clear()
         last_status.update(values)
 
-    subs = [node.create_subscription(Image, "outcome/labels", on_labels, sub_qos),
-            node.create_subscription(DiagnosticArray, "outcome/status", on_status, sub_qos)]
+    subs = [node.create_subscription(Image, LABELS_TOPIC, on_labels, sub_qos),
+            node.create_subscription(DiagnosticArray, STATUS_TOPIC, on_status, sub_qos)]
 
     def spin_until(cond, timeout: float) -> bool:
         deadline = time.monotonic() + timeout

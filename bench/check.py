@@ -30,6 +30,8 @@ sys.path.insert(0, str(BENCH))
 sys.path.insert(0, str(BENCH.parents[0]))
 from common import percentiles, record  # noqa: E402
 
+from task_outcome_ros.topics import DEPTH_TOPIC, STATUS_TOPIC  # noqa: E402
+
 FRAME_HZ = 30.0
 
 
@@ -77,7 +79,7 @@ def main() -> None:
     rclpy.init()
     node = rclpy.create_node("bench_check")
     qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-    image_pub = node.create_publisher(Image, "depth/image_raw", qos)
+    image_pub = node.create_publisher(Image, DEPTH_TOPIC, qos)
     info_pub = node.create_publisher(CameraInfo, "depth/camera_info", qos)
     checker = OutcomeCheckClient(node)
     inference_ms: list[float] = []  # the node's own time per frame, from its status
@@ -89,7 +91,7 @@ def main() -> None:
 
     from diagnostic_msgs.msg import DiagnosticArray
 
-    node.create_subscription(DiagnosticArray, "outcome/status", on_status, qos)
+    node.create_subscription(DiagnosticArray, STATUS_TOPIC, on_status, qos)
     msgs = [(nh.depth_msg(d), nh.camera_info(k.width, k.height, k.fx, k.cx, k.cy))
             for d, k in frames()]
     tick = [0]

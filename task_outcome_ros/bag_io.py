@@ -20,15 +20,19 @@ import numpy as np
 from task_outcome_ros import outcome_report as R
 from task_outcome_ros.depth import encode_depth
 
+# The node's topics, as bags record them (re-exported for the bag tools).
+from task_outcome_ros.topics import (  # noqa: F401
+    CAMERA_INFO_TOPIC,
+    DEPTH_TOPIC,
+    LABELS_TOPIC,
+    OVERLAY_TOPIC,
+    STATUS_TOPIC,
+)
+
 IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 STORAGES = ("mcap", "sqlite3")
-DEPTH_TOPIC = "depth/image_raw"
-CAMERA_INFO_TOPIC = "depth/camera_info"
-LABELS_TOPIC = "outcome/labels"
-STATUS_TOPIC = "outcome/status"
-OVERLAY_TOPIC = "outcome/overlay"
 
 
 class BagToolError(Exception):

@@ -21,8 +21,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from task_outcome_ros.check import SCHEMA
+from task_outcome_ros.topics import CHECK_SERVICE
 
-SERVICE = "outcome/check"
+SERVICE = CHECK_SERVICE
 
 
 @dataclass(frozen=True)

@@ -27,10 +27,11 @@ from task_outcome_ros import bag_io as B
 from task_outcome_ros import outcome_report as R
 from task_outcome_ros.ground_truth import load_ground_truth, score
 from task_outcome_ros.labels import OUTCOME_NAMES
+from task_outcome_ros.topics import LABELS_TOPIC, OVERLAY_TOPIC, STATUS_TOPIC
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
-OUTPUT_TOPICS = {"outcome/labels": B.IMAGE, "outcome/status": B.DIAGNOSTIC_ARRAY,
-                 "outcome/overlay": B.IMAGE}
+OUTPUT_TOPICS = {LABELS_TOPIC: B.IMAGE, STATUS_TOPIC: B.DIAGNOSTIC_ARRAY,
+                 OVERLAY_TOPIC: B.IMAGE}
 
 
 def _fastdds_profile() -> Path | None:
@@ -88,8 +89,8 @@ class Recorder:
         qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
         self.received: dict[str, dict[int, tuple[float, object]]] = {
             topic: {} for topic in OUTPUT_TOPICS}
-        for topic, msgtype in (("outcome/labels", Image), ("outcome/status", DiagnosticArray),
-                               ("outcome/overlay", Image)):
+        for topic, msgtype in ((LABELS_TOPIC, Image), (STATUS_TOPIC, DiagnosticArray),
+                               (OVERLAY_TOPIC, Image)):
             self.node.create_subscription(msgtype, topic, self._keeper(topic), qos)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -155,7 +156,7 @@ class LiveRun:
 
     def latencies_ms(self) -> list[float]:
         values = [{kv.key: kv.value for kv in msg.status[0].values}
-                  for _, msg in self.received["outcome/status"].values()]
+                  for _, msg in self.received[STATUS_TOPIC].values()]
         return [float(v["latency_ms"]) for v in values if "latency_ms" in v]
 
 
@@ -183,7 +184,7 @@ def run_live(bag: Path, out: Path, *, rate_hz_note: str = "", timeout_s: float =
             subprocess.run([*_script("outcome_replay"), str(bag), "--qos", "sensor_data",
                             "--wait", str(timeout_s)], env=env, check=True)
             deadline = time.monotonic() + 10.0
-            while len(recorder.received["outcome/status"]) < n_frames \
+            while len(recorder.received[STATUS_TOPIC]) < n_frames \
                     and time.monotonic() < deadline:
                 time.sleep(0.1)
             received = {topic: dict(by_stamp) for topic, by_stamp in recorder.received.items()}
@@ -198,7 +199,7 @@ def run_live(bag: Path, out: Path, *, rate_hz_note: str = "", timeout_s: float =
             except subprocess.TimeoutExpired:
                 node.kill()
     predicted = {stamp: status_present(msg) for stamp, (_, msg)
-                 in received["outcome/status"].items()}
+                 in received[STATUS_TOPIC].items()}
     write_output_bag(out / "output_bag", received)
     return LiveRun(received, ground_truth, score(ground_truth, predicted), n_frames)
 
@@ -206,7 +207,7 @@ def run_live(bag: Path, out: Path, *, rate_hz_note: str = "", timeout_s: float =
 def _wait_for_node(recorder: Recorder, node: subprocess.Popen, out: Path,
                    timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
-    while recorder.publishers_seen("outcome/labels") == 0:
+    while recorder.publishers_seen(LABELS_TOPIC) == 0:
         if node.poll() is not None:
             raise RuntimeError(f"outcome_node exited with {node.returncode}; see "
                                f"{out / 'outcome_node.log'}")

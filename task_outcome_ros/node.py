@@ -47,6 +47,15 @@ from task_outcome_ros.bag_io import stamp_to_ns
 from task_outcome_ros.check import CheckBook, frame_answer
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from task_outcome_ros.frames import NO_CAMERA_INFO_NOTE, FrameOutputs, process_frame, since_ms
+from task_outcome_ros.topics import (
+    CAMERA_INFO_TOPIC,
+    CHECK_SERVICE,
+    DEPTH_TOPIC,
+    LABELS_TOPIC,
+    MARKERS_TOPIC,
+    OVERLAY_TOPIC,
+    STATUS_TOPIC,
+)
 from task_outcome_ros.transport import TransportMonitor
 
 NODE_NAME = "outcome_node"
@@ -148,10 +157,10 @@ class OutcomeNode(Node):
         self._segmenter = self._load_segmenter()
 
         in_qos = subscription_qos(self._params["qos"])
-        self._pub_labels = self.create_publisher(Image, "outcome/labels", OUTPUT_QOS)
-        self._pub_status = self.create_publisher(DiagnosticArray, "outcome/status", OUTPUT_QOS)
-        self._pub_overlay = self.create_publisher(Image, "outcome/overlay", OUTPUT_QOS)
-        self._pub_markers = self.create_publisher(MarkerArray, "outcome/markers", OUTPUT_QOS)
+        self._pub_labels = self.create_publisher(Image, LABELS_TOPIC, OUTPUT_QOS)
+        self._pub_status = self.create_publisher(DiagnosticArray, STATUS_TOPIC, OUTPUT_QOS)
+        self._pub_overlay = self.create_publisher(Image, OVERLAY_TOPIC, OUTPUT_QOS)
+        self._pub_markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, OUTPUT_QOS)
 
         self._lock = threading.Condition()
         self._pending: tuple[Image, float] | None = None  # newest unprocessed (msg, t_received)
@@ -164,11 +173,11 @@ class OutcomeNode(Node):
         # holds its callback group, hence a reentrant group of its own: concurrent requests
         # all wait, and the subscriptions (default group) keep running.
         self._checks = CheckBook()
-        self.create_service(Trigger, "outcome/check", self._on_check,
+        self.create_service(Trigger, CHECK_SERVICE, self._on_check,
                             callback_group=ReentrantCallbackGroup())
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.create_subscription(Image, "depth/image_raw", self._on_image, in_qos)
-        self.create_subscription(CameraInfo, "depth/camera_info", self._on_camera_info, in_qos)
+        self.create_subscription(Image, DEPTH_TOPIC, self._on_image, in_qos)
+        self.create_subscription(CameraInfo, CAMERA_INFO_TOPIC, self._on_camera_info, in_qos)
         self._worker = threading.Thread(target=self._work, name="outcome_worker", daemon=True)
         self._worker.start()
         heights = (f"heights from {self.resolve_topic_name('depth/camera_info')} (the "

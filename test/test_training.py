@@ -435,7 +435,7 @@ def test_the_independent_set_is_cast_by_pybullet_and_scored_by_evaluate(small_ru
     assert both.mean() > 0.95 and np.median(np.abs(ours[both] - theirs[both])) < 1e-3
 
     out = tmp_path / "independent"
-    manifest = make_independent_set(small_run, out, 3, seed=1, progress=False)
+    manifest = make_independent_set(small_run, out, 3, seed=1, workers=1)
     assert [im["split"] for im in manifest["images"]] == ["val"] * 3
     for im in manifest["images"]:
         depth, labels = read_pair(out, im["episode"])
@@ -446,3 +446,7 @@ def test_the_independent_set_is_cast_by_pybullet_and_scored_by_evaluate(small_ru
     report = evaluate(ckpt, out, "val", tmp_path / "eval_independent", backend="torch",
                       progress=False)
     assert report["n_images"] == 3 and report["data"] == str(out)
+    again = make_independent_set(small_run, out, 3, seed=1, workers=1)   # resumes: all done
+    assert again["images"] == manifest["images"]
+    with pytest.raises(ValueError, match="another independent set"):
+        make_independent_set(small_run, out, 3, seed=2, workers=1)

@@ -289,12 +289,14 @@ def add_independent_args(p: argparse.ArgumentParser) -> None:
                    help="images, one per episode from the first (default 300)")
     p.add_argument("--seed", type=non_negative_int, default=0,
                    help="seed of the cameras and the noise (default 0)")
+    p.add_argument("--workers", type=positive_int, default=2, help="processes (default 2)")
 
 
 def cmd_independent(args) -> None:
     from training.independent import make_independent_set
 
-    manifest = make_independent_set(args.data, args.out, args.images, seed=args.seed)
+    manifest = make_independent_set(args.data, args.out, args.images, seed=args.seed,
+                                    workers=args.workers)
     print(f"independent: {len(manifest['images'])} images in {args.out}; score a model with "
           f"python -m training evaluate --data {args.out} --checkpoint MODEL")
 

@@ -27,6 +27,7 @@ import numpy as np
 from task_outcome_ros.bag_io import BagToolError
 from task_outcome_ros.labels import OUTCOME_NAMES
 from task_outcome_ros.live_bag import run_live
+from task_outcome_ros.topics import STATUS_TOPIC
 
 DEFAULT_OUT = Path("runs/demo")
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -70,7 +71,7 @@ def contact_sheet(path: Path, received: dict, ground_truth: dict, scores: dict,
         msg = received["outcome/overlay"][frame["stamp_ns"]][1]
         rgb = np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.width, 3)
         ax.imshow(rgb)
-        status = received["outcome/status"].get(frame["stamp_ns"])
+        status = received[STATUS_TOPIC].get(frame["stamp_ns"])
         said = status[1].status[0].message if status else "(no status)"
         truth = ",".join(k for k in OUTCOME_NAMES if frame["present"][k]) or "none"
         ok = frame["stamp_ns"] not in wrong
@@ -96,7 +97,7 @@ def run_demo(out: Path, episodes: int = 40, seed: int = 2026, timeout_s: float =
     scores = live.scores
     summary = {
         "frames_sent": live.frames_sent,
-        "frames_answered": len(live.received["outcome/status"]),
+        "frames_answered": len(live.received[STATUS_TOPIC]),
         "image_all_correct": scores["image_all_correct"],
         "presence_recall": scores["presence_recall"],
         "presence_precision": scores["presence_precision"],

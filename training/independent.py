@@ -18,7 +18,8 @@ and the task's own outcome definition) and makes every image another way:
 
 Images go into ``--out`` in the dataset's on-disk format (``images/``, ``manifest.json`` with
 every image in the ``val`` split), so ``python -m training evaluate --data OUT`` scores it.
-Every draw comes from a generator seeded by (seed, episode), recorded in the manifest.
+Every draw comes from a generator seeded by (seed, episode, 77), recorded in the manifest;
+images are made in resumable chunks by ``--workers`` processes.
 """
 
 from __future__ import annotations
@@ -29,7 +30,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from task_outcome_ros.labels import (
     BACKGROUND,
@@ -39,13 +39,15 @@ from task_outcome_ros.labels import (
     outcome_pixel_counts,
     outcomes_present,
 )
-from training.chunks import load_chunks
+from training.chunks import load_chunks, run_chunks
 from training.config import dataset_config_from_dict, load_json, save_json
 from training.fixture import episode_fixture
 from training.render import look_at, write_pair
 
-RAY_BATCH = 16_384          # pybullet's largest batch per rayTestBatch call
+RAY_BATCH = 8_192           # rays per rayTestBatch call (pybullet answers at most 16,383)
 RAY_LENGTH_M = 8.0
+SEED_STREAM = 77            # third entry of every image's seed, apart from seeding.py's streams
+CHUNK_IMAGES = 25           # images per resumable unit of work
 
 
 def draw_view(cfg, fixture, rng: np.random.Generator) -> dict:
@@ -144,20 +146,23 @@ class RayWorld:
         unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
         origin = np.asarray(view["position"])
         ends = origin + RAY_LENGTH_M * unit
-        fraction = np.ones(len(unit))
-        body = np.full(len(unit), -1)
-        normal = np.zeros((len(unit), 3))
+        rows = []   # (body id, hit fraction, normal x, y, z) per ray
         for start in range(0, len(unit), RAY_BATCH):
             stop = min(start + RAY_BATCH, len(unit))
             hits = self.pb.rayTestBatch([origin.tolist()] * (stop - start),
                                         ends[start:stop].tolist(), physicsClientId=self.client)
-            for k, hit in enumerate(hits, start):
-                body[k], fraction[k], normal[k] = hit[0], hit[2], hit[4]
+            if len(hits) != stop - start:
+                raise RuntimeError(f"pybullet answered {len(hits)} of {stop - start} rays")
+            rows.extend((hit[0], hit[2], *hit[4]) for hit in hits)
+        table = np.array(rows, dtype=np.float64)
+        body, fraction, normal = table[:, 0].astype(np.int64), table[:, 1], table[:, 2:]
         hit = body >= 0
         along = RAY_LENGTH_M * fraction / np.linalg.norm(dirs, axis=1)  # optical-axis depth
         depth = np.where(hit, along, np.nan).astype(np.float32).reshape(h, w)
-        labels = np.array([body_labels.get(int(b), BACKGROUND) for b in body],
-                          np.uint8).reshape(h, w)
+        lookup = np.full(max(body_labels) + 2, BACKGROUND, np.uint8)   # index -1: no hit
+        for body_id, label in body_labels.items():
+            lookup[body_id] = label
+        labels = lookup[body].reshape(h, w)
         cos = np.abs(np.sum(normal * unit, axis=1)).astype(np.float32).reshape(h, w)
         return depth, labels, cos
 
@@ -206,40 +211,62 @@ def nguyen_noise(depth: np.ndarray, labels: np.ndarray, cos: np.ndarray,
     return out, lab
 
 
+_STATE: dict = {}
+
+
+def _init_worker(out_dir: str, cfg, episodes: list[dict], outcomes: list[list[str]],
+                 seed: int) -> None:
+    cv2.setNumThreads(1)
+    _STATE.update(out_dir=Path(out_dir), cfg=cfg, episodes=episodes, outcomes=outcomes,
+                  seed=seed, world=RayWorld())
+
+
+def independent_image(i: int) -> dict:
+    """Cast, noise and write image ``i``; returns its manifest record."""
+    cfg, seed, world = _STATE["cfg"], _STATE["seed"], _STATE["world"]
+    episode, outcomes = _STATE["episodes"][i], _STATE["outcomes"][i]
+    rng = np.random.default_rng([seed, i, SEED_STREAM])
+    body_labels = world.build(episode, outcomes, cfg.scene)
+    view = draw_view(cfg, episode_fixture(episode, cfg.scene), rng)
+    clean, labels, cos = world.cast(view, body_labels)
+    depth, noisy_labels = nguyen_noise(clean, labels, cos, rng)
+    write_pair(_STATE["out_dir"], i, depth, noisy_labels)
+    return {"episode": i, "split": "val", "seed": [seed, i, SEED_STREAM], "camera": view,
+            "camera_info": {**{k: view[k] for k in ("width", "height", "cx", "cy")},
+                            "fx": view["reported_fx"], "fy": view["reported_fx"]},
+            "objects": outcomes, "present": outcomes_present(noisy_labels),
+            "pixel_counts": outcome_pixel_counts(noisy_labels)}
+
+
+def _chunk(images: tuple[int, int]) -> dict:
+    return {"episodes": [independent_image(i) for i in range(*images)]}
+
+
 def make_independent_set(data_dir: Path, out_dir: Path, images: int, seed: int = 0,
-                         progress: bool = True) -> dict:
-    """``images`` independent images of the first episodes of ``data_dir``'s run."""
+                         workers: int = 2) -> dict:
+    """``images`` independent images of the first episodes of ``data_dir``'s run, made in
+    resumable chunks (an interrupted run picks up where it stopped)."""
     data_dir, out_dir = Path(data_dir), Path(out_dir)
-    cfg = dataset_config_from_dict(load_json(data_dir / "config.json"))
+    config = load_json(data_dir / "config.json")
+    cfg = dataset_config_from_dict(config)
     episodes = load_chunks(data_dir / "simulate", cfg.episodes, cfg.chunk_size)
     outcomes = load_json(data_dir / "outcomes.json")["outcomes"]
     count = min(images, len(episodes))
     out_dir.mkdir(parents=True, exist_ok=True)
+    recipe = {"source": str(data_dir), "images": count, "seed": seed}
+    saved = out_dir / "independent.json"
+    if saved.exists() and load_json(saved) != recipe:
+        raise ValueError(f"{out_dir} holds another independent set ({load_json(saved)}); "
+                         "use a new --out")
+    save_json(saved, recipe)
     for name in ("simulate", "outcomes.json", "config.json"):  # hard-case tags, the task
-        target = out_dir / name
-        if not target.exists():
+        if not (out_dir / name).exists():
             copy = shutil.copytree if (data_dir / name).is_dir() else shutil.copy2
-            copy(data_dir / name, target)
-    world = RayWorld()
-    records = []
-    try:
-        for i in tqdm(range(count), desc="independent", unit="img", disable=not progress):
-            rng = np.random.default_rng([seed, i, 77])
-            body_labels = world.build(episodes[i], outcomes[i], cfg.scene)
-            view = draw_view(cfg, episode_fixture(episodes[i], cfg.scene), rng)
-            clean, labels, cos = world.cast(view, body_labels)
-            depth, noisy_labels = nguyen_noise(clean, labels, cos, rng)
-            write_pair(out_dir, i, depth, noisy_labels)
-            records.append({
-                "episode": i, "split": "val", "seed": [seed, i, 77], "camera": view,
-                "camera_info": {**{k: view[k] for k in ("width", "height", "cx", "cy")},
-                                "fx": view["reported_fx"], "fy": view["reported_fx"]},
-                "objects": outcomes[i], "present": outcomes_present(noisy_labels),
-                "pixel_counts": outcome_pixel_counts(noisy_labels)})
-    finally:
-        world.close()
-    manifest = {"config": load_json(data_dir / "config.json"),
-                "source": str(data_dir), "generator": "training/independent.py",
-                "seed": seed, "images": records}
+            copy(data_dir / name, out_dir / name)
+    stage = out_dir / "independent"
+    run_chunks(stage, count, CHUNK_IMAGES, workers, _chunk, "independent",
+               initializer=_init_worker, initargs=(str(out_dir), cfg, episodes, outcomes, seed))
+    manifest = {"config": config, **recipe, "generator": "training/independent.py",
+                "images": load_chunks(stage, count, CHUNK_IMAGES)}
     save_json(out_dir / "manifest.json", manifest)
     return manifest
