@@ -43,10 +43,10 @@ def frames(n: int = 20) -> list[tuple[np.ndarray, object]]:
     run = next((r for r in runs if (r / "manifest.json").is_file()), None)
     if run is not None:
         from training.dataset import load_manifest
-        from training.render import read_pair
+        from training.render import read_pair, reported_camera
 
         images = load_manifest(run)["images"][:n]
-        return [(read_pair(run, im["episode"])[0], Intrinsics.from_record(im["camera"]))
+        return [(read_pair(run, im["episode"])[0], Intrinsics.from_record(reported_camera(im)))
                 for im in images]
     depth = np.full((480, 640), 2.3, np.float32)
     depth[150:330, 200:440] = 2.0

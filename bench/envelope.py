@@ -39,7 +39,7 @@ def main() -> None:
     from task_outcome_ros.camera import Intrinsics
     from task_outcome_ros.inference import OutcomeSegmenter
     from training.dataset import load_manifest
-    from training.render import read_pair
+    from training.render import read_pair, reported_camera
 
     manifest = load_manifest(args.data)
     images = [im for im in manifest["images"]
@@ -49,7 +49,7 @@ def main() -> None:
     flagged = []
     for im in tqdm(images, desc="envelope", unit="img"):
         depth, _ = read_pair(args.data, im["episode"])
-        result = seg.segment(depth, Intrinsics.from_record(im["camera"]))
+        result = seg.segment(depth, Intrinsics.from_record(reported_camera(im)))
         if result.outside_envelope:
             flagged.append(im["episode"])
             reasons.update(why.split(" ")[0] + " " + why.split(" ")[1]

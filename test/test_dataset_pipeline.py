@@ -44,6 +44,7 @@ from training.discover import features, name_cluster
 from training.fixture import episode_fixture
 from training.geometry import SAMPLE_GRID, geometric_outcome, object_measurements
 from training.render import draw_camera, read_pair, render, render_episode, scene_boxes
+from training.scene import load_scene
 from training.seeding import episode_rng
 
 pytestmark = pytest.mark.pipeline
@@ -116,8 +117,8 @@ def test_worker_count_does_not_change_a_byte(runs):
     assert c1 == c2
     # The manifest carries the run's config, minus the worker count (not a data parameter).
     assert load_json(w1 / "manifest.json")["config"] == c1
-    assert dataset_config_from_dict(c1) == DatasetConfig(episodes=EPISODES, seed=SEED,
-                                                         chunk_size=CHUNK)
+    assert dataset_config_from_dict(c1) == load_scene("default", episodes=EPISODES, seed=SEED,
+                                                      chunk_size=CHUNK)
 
 
 def test_the_tote_spec_is_deterministic_and_labels_its_own_scene(tmp_path):
@@ -526,7 +527,10 @@ def test_cache_and_dataset_shapes(run, tmp_path):
     assert ((arrays["valid"] >= 0) & (arrays["valid"] <= 1)).all()
     assert (arrays["depth"][arrays["valid"] == 0] == 0).all()
     valid_depth = arrays["depth"][arrays["valid"] > 0].astype(np.float32)
-    assert 0.5 <= valid_depth.min() and valid_depth.max() <= 4.5
+    spec = load_scene("default")   # the nearest and farthest any of its sensors measures
+    near = min(spec.noise.bounds("min_range")[0], spec.tof.bounds("min_range")[0])
+    far = max(spec.noise.bounds("max_range")[1], spec.tof.bounds("max_range")[1])
+    assert near <= valid_depth.min() and valid_depth.max() <= far + 0.01  # float16 rounding
     mtime = cache_path(copy, "train", size).stat().st_mtime_ns
 
     train = OutcomeDataset(copy, "train", size, workers=1)
@@ -640,7 +644,8 @@ def test_training_modules_import_without_rclpy():
 
 
 def test_default_dataset_config_is_what_the_small_runs_used(run_data):
-    """The runs above differ from the defaults only in the CLI options given."""
-    cfg = run_data["cfg"]
-    assert cfg.scene == DatasetConfig().scene and cfg.camera == DatasetConfig().camera
+    """The runs above differ from the default spec only in the CLI options given."""
+    cfg, spec = run_data["cfg"], load_scene("default")
+    assert (cfg.scene, cfg.camera, cfg.noise, cfg.tof) == (spec.scene, spec.camera, spec.noise,
+                                                           spec.tof)
     assert (cfg.episodes, cfg.chunk_size, cfg.seed, cfg.workers) == (EPISODES, CHUNK, SEED, 1)
