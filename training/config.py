@@ -433,19 +433,17 @@ class DatasetConfig:
         """The sensor must measure the fixture from every distance of the envelope, and the
         look-at point must stay over the fixture's inner footprint."""
         near, far = self.camera.distance
-        sensor_near = self.noise.bounds("min_range")[1]  # the narrowest range any frame draws
-        sensor_far = self.noise.bounds("max_range")[0]
-        if self.noise.enabled and (near < sensor_near or far > sensor_far):
-            raise ConfigError(
-                f"camera.distance = {list(self.camera.distance)} m: the sensor measures "
-                f"{sensor_near}-{sensor_far} m (noise.min_range, noise.max_range), so it "
-                "could not see the fixture from every distance")
-        tof_near, tof_far = self.tof.bounds("min_range")[1], self.tof.bounds("max_range")[0]
-        if self.noise.enabled and self.tof.share > 0 and (near < tof_near or far > tof_far):
-            raise ConfigError(
-                f"camera.distance = {list(self.camera.distance)} m: the ToF sensor measures "
-                f"{tof_near}-{tof_far} m (tof.min_range, tof.max_range), so it could not "
-                "see the fixture from every distance")
+        sensors = [("sensor", "noise", self.noise)]
+        if self.tof.share > 0:
+            sensors.append(("ToF sensor", "tof", self.tof))
+        for label, section, sensor in sensors if self.noise.enabled else ():
+            sensor_near = sensor.bounds("min_range")[1]  # the narrowest range any frame draws
+            sensor_far = sensor.bounds("max_range")[0]
+            if near < sensor_near or far > sensor_far:
+                raise ConfigError(
+                    f"camera.distance = {list(self.camera.distance)} m: the {label} measures "
+                    f"{sensor_near}-{sensor_far} m ({section}.min_range, {section}.max_range), "
+                    "so it could not see the fixture from every distance")
         smallest_half = min(self.scene.inner_size_x[0], self.scene.inner_size_y[0]) / 2
         if self.camera.target_offset > smallest_half:
             raise ConfigError(

@@ -58,11 +58,9 @@ class Fixture:
 
     def tilt_rotation(self) -> np.ndarray:
         """Support frame -> true (gravity-aligned) frame: the tilt about its horizontal axis."""
-        angle, az = math.radians(self.tilt_deg), math.radians(self.tilt_azimuth_deg)
-        axis = np.array([math.cos(az), math.sin(az), 0.0])
-        k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]],
-                      [-axis[1], axis[0], 0.0]])
-        return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+        az = math.radians(self.tilt_azimuth_deg)
+        return axis_angle_rotation(np.array([math.cos(az), math.sin(az), 0.0]),
+                                   math.radians(self.tilt_deg))
 
     def gravity(self) -> list[float]:
         """Gravity in the support's frame (the simulation's)."""
@@ -115,6 +113,13 @@ class Fixture:
 
     def to_record(self) -> dict:
         return asdict(self)
+
+
+def axis_angle_rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rotation by ``angle_rad`` about the unit ``axis`` (Rodrigues' formula)."""
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]],
+                  [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + math.sin(angle_rad) * k + (1 - math.cos(angle_rad)) * (k @ k)
 
 
 def fixture_from_record(record: dict) -> Fixture:

@@ -41,8 +41,9 @@ from task_outcome_ros.labels import (
 )
 from training.chunks import load_chunks, run_chunks
 from training.config import dataset_config_from_dict, load_json, save_json
-from training.fixture import episode_fixture
+from training.fixture import axis_angle_rotation, episode_fixture
 from training.render import look_at, write_pair
+from training.simulate import object_collision_shape
 
 RAY_BATCH = 8_192           # rays per rayTestBatch call (pybullet answers at most 16,383)
 RAY_LENGTH_M = 8.0
@@ -66,8 +67,9 @@ def draw_view(cfg, fixture, rng: np.random.Generator) -> dict:
     rotation = look_at(position, target, math.degrees(azimuth), rng.uniform(-10.0, 10.0))
     # A support tilted by up to 4 degrees looks, to the camera, like the camera turned
     # about the fixture by as much.
-    tilt = _axis_angle(np.array([math.cos(t := rng.uniform(0, 2 * math.pi)), math.sin(t), 0.0]),
-                       math.radians(rng.uniform(0.0, 4.0)))
+    toward = rng.uniform(0, 2 * math.pi)
+    tilt = axis_angle_rotation(np.array([math.cos(toward), math.sin(toward), 0.0]),
+                               math.radians(rng.uniform(0.0, 4.0)))
     position = target + tilt @ (position - target)
     rotation = tilt @ rotation
     f = rng.uniform(*cam.focal_px)
@@ -78,11 +80,6 @@ def draw_view(cfg, fixture, rng: np.random.Generator) -> dict:
     return {"width": width, "height": height, "fx": f, "fy": f, "cx": cx, "cy": cy,
             "position": position.tolist(), "rotation": rotation.tolist(),
             "reported_fx": reported}
-
-
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
 
 
 class RayWorld:
@@ -122,13 +119,7 @@ class RayWorld:
             labels[pb.createMultiBody(0, box, basePosition=list(centre), baseOrientation=yaw,
                                       physicsClientId=c)] = BACKGROUND
         for obj, outcome in zip(episode["objects"], outcomes):
-            size = obj["size"]
-            if obj.get("shape", "box") == "cylinder":
-                shape = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=size[0] / 2,
-                                                height=size[2], physicsClientId=c)
-            else:
-                shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[s / 2 for s in size],
-                                                physicsClientId=c)
+            shape = object_collision_shape(pb, c, obj.get("shape", "box"), obj["size"])
             body = pb.createMultiBody(0, shape, basePosition=obj["position"],
                                       baseOrientation=obj["orientation"], physicsClientId=c)
             labels[body] = OUTCOME_IDS[outcome]

@@ -122,6 +122,16 @@ def _shape_key(fixture: Fixture) -> tuple:
             fixture.bottom_thickness, table)
 
 
+def object_collision_shape(pb, client: int, shape: str, size: list[float]) -> int:
+    """A pybullet collision shape for an object record's ``shape`` and ``size`` (box edges, or
+    a cylinder's diameter, diameter, height)."""
+    if shape == "cylinder":  # pybullet cylinders stand along their local z
+        return pb.createCollisionShape(pb.GEOM_CYLINDER, radius=size[0] / 2,
+                                       height=size[2], physicsClientId=client)
+    return pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[s / 2 for s in size],
+                                   physicsClientId=client)
+
+
 class World:
     """A reusable pybullet DIRECT world: the room floor, the container and maybe a table."""
 
@@ -176,12 +186,7 @@ class World:
         self.objects = []
 
     def _object_shape(self, shape: str, size: list[float]) -> int:
-        pb, c = self.pb, self.client
-        if shape == "cylinder":  # pybullet cylinders stand along their local z
-            return pb.createCollisionShape(pb.GEOM_CYLINDER, radius=size[0] / 2,
-                                           height=size[2], physicsClientId=c)
-        return pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[s / 2 for s in size],
-                                       physicsClientId=c)
+        return object_collision_shape(self.pb, self.client, shape, size)
 
     def run(self, draw: EpisodeDraw) -> dict:
         pb, c, scene, fixture = self.pb, self.client, self.scene, draw.fixture
