@@ -1,6 +1,6 @@
 """Benchmark the real outcome_node over DDS: end-to-end latency, 30 Hz throughput, memory.
 
-    python bench/node.py                  # 4 scenarios, 60 s of 30 Hz each (~5-6 min)
+    python bench/node.py                  # 5 scenarios, 60 s of 30 Hz each (~7-8 min)
     python bench/node.py --seconds 120
     python bench/node.py --quick          # a smoke run (~1.5 min)
 
@@ -11,9 +11,16 @@ Scenarios: input QoS best effort (node qos:=sensor_data, publisher best effort d
 reliable (qos:=reliable, publisher reliable depth 5), each with and without the Fast DDS SHM
 profile (config/fastdds_shm.xml via FASTRTPS_DEFAULT_PROFILES_FILE, for both processes);
 "no SHM profile" means Fast DDS's built-in transports (``host_udp_datagrams_during`` hints
-how much went over UDP, but the counters are host-wide: other processes add to them).
+how much went over UDP, but the counters are host-wide: other processes add to them). Frames
+come from many cameras (every dataset image has its own, so the support plane is refitted
+each frame), and in one more best-effort SHM scenario from one static camera (one image with
+fresh noise each frame: the node keeps its plane, ``reuse_floor_fit``).
 
-* latency (best-effort scenarios): one frame at a time at 10 Hz, publish -> labels received;
+* latency (best-effort scenarios): one frame at a time at 10 Hz, publish -> labels received,
+  interleaved frame by frame with the **floor**: a do-nothing node (bench/_floor_node.py)
+  beside the real one, fed by the same publisher with the same profile, that answers each
+  frame at once with the same messages. ``ratio_to_floor`` = outcome_node / floor; CPU time
+  per frame for both;
 * throughput: 30 Hz for ``--seconds``: fraction answered, node dropped_frames (newest-frame
   policy), frames lost before the node, answer lag and backlog, node CPU and RSS over time.
 
@@ -83,23 +90,35 @@ def stop(proc: subprocess.Popen | None, timeout: float = 10.0) -> None:
         proc.wait(timeout)
 
 
+def floor_command(qos: str) -> list[str]:
+    """The do-nothing node (bench/_floor_node.py) in the namespace the client feeds."""
+    return [sys.executable, str(BENCH / "_floor_node.py"), "--qos", qos, "--ros-args",
+            "-r", "__ns:=/floor"]
+
+
 def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds: float,
-                 images: int, tmp: Path, timeout: float) -> dict:
-    name = f"{'shm' if shm else 'noshm'}_{qos}"
+                 images: int, tmp: Path, timeout: float, static: bool = False) -> dict:
+    name = f"{'shm' if shm else 'noshm'}_{qos}{'_static' if static else ''}"
     domain_id = random.randint(1, 200)
     env = scenario_env(domain_id, shm)
     log_path, out = tmp / f"{name}.node.log", tmp / f"{name}.json"
-    node = client = None
+    node = client = floor = None
     start, udp0, load0 = time.monotonic(), udp_counters(), load_average()
     try:
         with open(log_path, "w") as log:
             node = subprocess.Popen(
                 node_command() + ["--ros-args", "-p", f"model_path:={model}", "-p", f"qos:={qos}"],
                 env=env, stdout=log, stderr=subprocess.STDOUT)
+            client_args = ["--node-pid", str(node.pid)]
+            if latency_frames:  # the floor, measured in the same run, frame by frame
+                floor = subprocess.Popen(floor_command(qos), env=env, stdout=log,
+                                         stderr=subprocess.STDOUT)
+                client_args += ["--floor-pid", str(floor.pid)]
             client = subprocess.Popen(
-                [sys.executable, str(BENCH / "_node_client.py"), "--node-pid", str(node.pid),
+                [sys.executable, str(BENCH / "_node_client.py"), *client_args,
                  "--qos", qos, "--latency-frames", str(latency_frames), "--seconds",
-                 str(seconds), "--images", str(images), "--out", str(out)], env=env)
+                 str(seconds), "--images", str(images), "--out", str(out)]
+                + (["--static-camera"] if static else []), env=env)
             try:
                 client.wait(timeout)
             except subprocess.TimeoutExpired:
@@ -108,12 +127,14 @@ def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds:
             node_alive = node.poll() is None
     finally:
         stop(client)
+        stop(floor)
         stop(node)
     udp1 = udp_counters()
     log_text = log_path.read_text()
     result = json.loads(out.read_text()) if out.exists() else {"ok": False,
                                                                 "error": "no client output"}
-    result.update(scenario=name, shm_profile=shm, node_qos=qos, domain_id=domain_id,
+    result.update(scenario=name, shm_profile=shm, node_qos=qos, static_camera=static,
+                  domain_id=domain_id,
                   wall_s=round(time.monotonic() - start, 1), node_alive_at_end=node_alive,
                   node_exit_code=node.returncode, load_average_before=load0,
                   load_average_after=load_average(),
@@ -131,8 +152,13 @@ def summary(s: dict) -> dict:
     lat = s.get("latency")
     if lat:
         e2e = lat.get("end_to_end_ms") or {}
+        floor = (lat.get("floor") or {}).get("end_to_end_ms") or {}
         out.update(latency_p50_ms=e2e.get("p50"), latency_p95_ms=e2e.get("p95"),
-                   latency_unanswered=f"{lat['unanswered']}/{lat['frames']}")
+                   latency_unanswered=f"{lat['unanswered']}/{lat['frames']}",
+                   floor_p50_ms=floor.get("p50"), floor_p95_ms=floor.get("p95"),
+                   ratio_to_floor=lat.get("ratio_to_floor"),
+                   cpu_ms_per_frame=lat.get("cpu_ms_per_frame"),
+                   floor_cpu_ms_per_frame=(lat.get("floor") or {}).get("cpu_ms_per_frame"))
     tp = s.get("throughput")
     if tp:
         out.update(fraction_answered=tp["fraction_answered"], answered_hz=tp["answered_hz"],
@@ -142,7 +168,9 @@ def summary(s: dict) -> dict:
                    max_backlog_frames=tp["backlog_frames"]["max"],
                    node_rss_mb_start_end=[round(tp["node_rss_kb"]["start"] / 1024, 1),
                                           round(tp["node_rss_kb"]["end"] / 1024, 1)],
-                   node_cpu_percent=tp["node_cpu_percent"])
+                   node_cpu_percent=tp["node_cpu_percent"],
+                   node_cpu_ms_per_answered_frame=tp.get("node_cpu_ms_per_answered_frame"),
+                   support_plane_kept_share=tp.get("support_plane_kept_share"))
     return out
 
 
@@ -169,15 +197,19 @@ def main() -> None:
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="bench_node_") as tmp:
         model, model_desc = prepare_model(Path(tmp))
-        for qos in ("sensor_data", "reliable"):
-            for shm in (True, False):
-                lat = args.latency_frames if qos == "sensor_data" else 0
-                timeout = 240 + args.seconds * 2 + lat * 0.5
-                print(f"[bench/node] scenario shm={shm} qos={qos} ...", flush=True)
-                s = run_scenario(model, qos, shm, lat, args.seconds, args.images, Path(tmp),
-                                 timeout)
-                print(f"[bench/node]   {json.dumps(summary(s))}", flush=True)
-                scenarios.append(s)
+        # (qos, shm, static camera): the moving-camera frames refit the support plane each
+        # time; the static one is what a cell's fixed camera gives the node.
+        plan = [("sensor_data", True, True), ("sensor_data", True, False),
+                ("sensor_data", False, False), ("reliable", True, False),
+                ("reliable", False, False)]
+        for qos, shm, static in plan:
+            lat = args.latency_frames if qos == "sensor_data" else 0
+            timeout = 240 + args.seconds * 2 + lat * 0.5
+            print(f"[bench/node] scenario shm={shm} qos={qos} static={static} ...", flush=True)
+            s = run_scenario(model, qos, shm, lat, args.seconds, args.images, Path(tmp),
+                             timeout, static)
+            print(f"[bench/node]   {json.dumps(summary(s))}", flush=True)
+            scenarios.append(s)
     if not all(s.get("ok") for s in scenarios):
         for s in scenarios:
             if not s.get("ok"):
@@ -186,8 +218,10 @@ def main() -> None:
         sys.exit("bench/node.py: a scenario failed; results.json left unchanged")
     record("node", {
         "model": model_desc, "node_command": " ".join(node_command()),
-        "node_params": "defaults (backend auto, publish_overlay true, publish_markers true) "
-                       "+ model_path, qos",
+        "node_params": "defaults (backend auto, publish_overlay true, publish_markers true, "
+                       "reuse_floor_fit true) + model_path, qos; the client subscribes to "
+                       "labels and status only, so overlay and markers are not computed",
+        "floor_node": " ".join(floor_command("<qos>")),
         "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
         "quick": args.quick, "wall_s": round(time.monotonic() - t0, 1),
         "load_average_1_5_15": {"start": load_start, "end": load_average()},

@@ -147,7 +147,9 @@ def _segmenter(model: str | None, device: str, backend: str, presence_min_pixels
         segmenter = OutcomeSegmenter(model or None, device=device,
                                      presence_min_pixels=presence_min_pixels, backend=backend,
                                      num_threads=num_threads,
-                                     fragment_max_pixels=fragment_max_pixels)
+                                     fragment_max_pixels=fragment_max_pixels,
+                                     # one topic is one camera: as the node does
+                                     reuse_floor_fit=True)
         segmenter.warmup()  # as the node does, so the first inference_ms is not inflated
         return segmenter
     except (CheckpointError, ValueError, RuntimeError, OSError, ImportError) as exc:

@@ -154,26 +154,117 @@ def _refine(flat_p: torch.Tensor, flat_v: torch.Tensor, normal: torch.Tensor,
     return normal, torch.where(ok[:, 0], (normal * centre).sum(-1), offset)
 
 
+def support_plane(points: torch.Tensor, valid: torch.Tensor, version: int = FLOOR_FIT,
+                  support_above_floor: tuple[float, float] | None = None,
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The plane heights are measured from, per image: (N, 3) normals and (N,) offsets.
+
+    The floor (``fit_floor``), or with ``support_above_floor`` the table top above it when
+    that is seen (module docstring)."""
+    normal, offset = fit_floor(points, valid, version)
+    if support_above_floor is None:
+        return normal, offset
+    lo, hi = support_above_floor
+    height = _distances(points, normal, offset)
+    band = valid & (height > lo - SUPPORT_MARGIN_M) & (height < hi + SUPPORT_MARGIN_M)
+    seen = band.sum((1, 2)) >= SUPPORT_MIN_SHARE * valid.sum((1, 2)).clamp_min(1)
+    if not bool(seen.any()):
+        return normal, offset
+    top_normal, top_offset = fit_floor(points, band, version)
+    return (torch.where(seen[:, None], top_normal, normal),
+            torch.where(seen, top_offset, offset))
+
+
+def _distances(points: torch.Tensor, normal: torch.Tensor, offset: torch.Tensor
+               ) -> torch.Tensor:
+    """(N, h, w, 3) points, planes (N, 3), (N,) -> (N, h, w) signed distances."""
+    return (points * normal[:, None, None]).sum(-1) - offset[:, None, None]
+
+
 def height_above_floor(depth: torch.Tensor, valid: torch.Tensor,
                        focal_over_width: float = FOCAL_OVER_WIDTH,
                        intrinsics: torch.Tensor | None = None,
                        version: int = FLOOR_FIT,
-                       support_above_floor: tuple[float, float] | None = None
-                       ) -> torch.Tensor:
+                       support_above_floor: tuple[float, float] | None = None,
+                       tracker: FloorTracker | None = None) -> torch.Tensor:
     """(N, h, w) depth (metres) and validity (bool) -> (N, h, w) height in metres; 0 where
     invalid, and everywhere in an image with fewer than three valid pixels. ``intrinsics``:
     see ``backproject``; ``version``: see ``fit_floor``; ``support_above_floor``: the (min,
     max) height of a table top above the room floor, to measure from the table when both are
-    in view (module docstring)."""
+    in view (module docstring). ``tracker`` (one image only): reuse the previous frame's
+    plane while it still fits (``FloorTracker``)."""
     points = backproject(depth.float(), focal_over_width, intrinsics)
-    normal, offset = fit_floor(points, valid, version)
-    height = (points * normal[:, None, None]).sum(-1) - offset[:, None, None]
-    if support_above_floor is not None:
-        lo, hi = support_above_floor
-        band = valid & (height > lo - SUPPORT_MARGIN_M) & (height < hi + SUPPORT_MARGIN_M)
-        seen = band.sum((1, 2)) >= SUPPORT_MIN_SHARE * valid.sum((1, 2)).clamp_min(1)
-        if bool(seen.any()):
-            top_normal, top_offset = fit_floor(points, band, version)
-            top = (points * top_normal[:, None, None]).sum(-1) - top_offset[:, None, None]
-            height = torch.where(seen[:, None, None], top, height)
+    if tracker is None:
+        normal, offset = support_plane(points, valid, version, support_above_floor)
+    else:
+        key = (tuple(depth.shape), focal_over_width, version,
+               None if intrinsics is None else tuple(intrinsics.flatten().tolist()),
+               None if support_above_floor is None else tuple(support_above_floor))
+        normal, offset = tracker.plane(points, valid, key, version, support_above_floor)
+    height = _distances(points, normal, offset)
     return torch.where(valid, height, torch.zeros_like(height))
+
+
+class FloorTracker:
+    """Static cameras: keep one frame's support plane for the next frames while it still fits.
+
+    A cell's camera rarely moves, and the RANSAC fit is about half of preprocessing. Each new
+    frame checks the kept plane on ``CHECK_POINTS`` fixed pixels: it is kept while the share
+    of them within the inlier band stays at least ``KEEP_SHARE`` of its share at fit time and
+    almost none lie beneath it (nothing lies beneath the floor). A camera that moves or tilts
+    by more than the band (8 mm) loses most inliers, so it refits; new intrinsics, another
+    image size or another fit configuration refit at once. Objects arriving on the floor
+    cover a few of the checked pixels, which the slack allows for. One image at a time (the
+    node's frames); ``reused`` and ``refits`` count what happened.
+    """
+
+    CHECK_POINTS = 400
+    KEEP_SHARE = 0.8
+    MAX_BENEATH_GAIN = 0.02   # beneath share may grow this much over its share at fit time
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self._plane: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._at_fit: tuple[float, float] = (0.0, 0.0)   # (inlier, beneath) shares
+        self._pixels: torch.Tensor | None = None       # flat indices, drawn per size
+        self.reused = 0
+        self.refits = 0
+
+    def reset(self) -> None:
+        """Forget the plane: the next frame is fitted afresh."""
+        self._key = self._plane = None
+
+    def plane(self, points: torch.Tensor, valid: torch.Tensor, key: tuple, version: int,
+              support_above_floor: tuple[float, float] | None,
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+        if points.shape[0] != 1:
+            raise ValueError(f"FloorTracker takes one image at a time, got {points.shape[0]}")
+        if self._plane is not None and key == self._key:
+            inlier, beneath = self._shares(points, valid, *self._plane, version)
+            fit_inlier, fit_beneath = self._at_fit
+            if (inlier >= self.KEEP_SHARE * fit_inlier
+                    and beneath <= fit_beneath + self.MAX_BENEATH_GAIN):
+                self.reused += 1
+                return self._plane
+        normal, offset = support_plane(points, valid, version, support_above_floor)
+        if key != self._key or self._pixels is None:   # fixed check pixels for this size
+            gen = torch.Generator().manual_seed(_SEED + 1)
+            self._pixels = torch.randint(0, valid.numel(), (self.CHECK_POINTS,),
+                                         generator=gen).to(points.device)
+        self._key, self._plane = key, (normal, offset)
+        self._at_fit = self._shares(points, valid, normal, offset, version)
+        self.refits += 1
+        return normal, offset
+
+    def _shares(self, points: torch.Tensor, valid: torch.Tensor, normal: torch.Tensor,
+                offset: torch.Tensor, version: int) -> tuple[float, float]:
+        """(inlier, beneath) shares of the checked pixels with valid depth."""
+        flat_p, flat_v = points.reshape(-1, 3), valid.reshape(-1)
+        ok = flat_v[self._pixels]
+        count = int(ok.sum())
+        if count == 0:
+            return 0.0, 0.0
+        signed = flat_p[self._pixels][ok] @ normal[0] - offset[0]
+        band = _INLIER_M[version]
+        return (float((signed.abs() < band).sum()) / count,
+                float((signed < -band).sum()) / count)

@@ -24,6 +24,7 @@ from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.checkpoint import CheckpointError, LoadedCheckpoint, load, resolve_device
 from task_outcome_ros.depth import sanitize_depth
 from task_outcome_ros.envelope import Envelope, FrameStats, check, frame_stats
+from task_outcome_ros.floor import FloorTracker
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS, absorb_fragments, fragment_threshold
 from task_outcome_ros.labels import (
     BACKGROUND,
@@ -73,6 +74,7 @@ class OutcomeResult:
     stats: FrameStats | None = None     # what the envelope check looks at
     outside_envelope: list[str] = field(default_factory=list)  # why; empty: inside
     envelope_checked: bool = False      # False: the checkpoint records no training envelope
+    support_plane: str | None = None    # with reuse_floor_fit: "kept" or "fitted" this frame
 
 
 def models_dir() -> Path:
@@ -192,13 +194,16 @@ class OutcomeSegmenter:
     device is the CPU, else torch). ``backend_reason`` says why a backend was chosen.
     ``num_threads`` (optional) sets torch's global intra-op threads and onnxruntime's.
     ``fragment_max_pixels`` (at 640 x 480; 0 = off): outcome fragments smaller than this on
-    another outcome's object take that outcome (fragments.py).
+    another outcome's object take that outcome (fragments.py). ``reuse_floor_fit``: frames
+    come from one stream (the node, a bag), so keep the support plane while it fits
+    (``floor.FloorTracker``); off for datasets, whose every image has its own camera.
     """
 
     def __init__(self, model_path: str | Path | None = None, device: str = "cpu",
                  presence_min_pixels: int = PRESENCE_MIN_PIXELS, backend: str = "auto",
                  num_threads: int | None = None,
-                 fragment_max_pixels: int = FRAGMENT_MAX_PIXELS) -> None:
+                 fragment_max_pixels: int = FRAGMENT_MAX_PIXELS,
+                 reuse_floor_fit: bool = False) -> None:
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         for name, value, low in (("presence_min_pixels", presence_min_pixels, 1),
@@ -218,6 +223,7 @@ class OutcomeSegmenter:
             self.checkpoint.train_config.get("dataset") or {})
         self.presence_min_pixels = presence_min_pixels
         self.fragment_max_pixels = fragment_max_pixels
+        self.floor_tracker = FloorTracker() if reuse_floor_fit else None
         self._session = None
         self.backend, self.backend_reason = self._choose_backend(backend, num_threads)
 
@@ -296,10 +302,14 @@ class OutcomeSegmenter:
                              f"image, the depth image is {depth.shape[1]} x {depth.shape[0]}")
         small = None  # an all-invalid frame: nothing seen, nothing present (a defined answer)
         x = None
+        kept_before = self.floor_tracker.reused if self.floor_tracker else 0
         if np.isfinite(depth).any():
             x = self.prepare(depth, intrinsics)
             small = self._predict_small(x)
         result = self.postprocess(small, depth)
+        if self.floor_tracker is not None and x is not None:
+            result.support_plane = ("kept" if self.floor_tracker.reused > kept_before
+                                    else "fitted")
         result.stats = self._frame_stats(x, small, depth)
         result.outside_envelope = check(self.envelope, result.stats, intrinsics)
         result.envelope_checked = self.envelope is not None
@@ -327,7 +337,8 @@ class OutcomeSegmenter:
         ``segment`` does before the network (also timed alone by the bench). The intrinsics
         reach the height channel only for a network trained with them."""
         k = intrinsics.normalised() if intrinsics is not None and self.uses_intrinsics else None
-        return preprocess_sanitized(depth, self.input_size, self.normalisation, k)
+        return preprocess_sanitized(depth, self.input_size, self.normalisation, k,
+                                    self.floor_tracker)
 
     def postprocess(self, small: np.ndarray | None, depth: np.ndarray) -> OutcomeResult:
         """Everything ``segment`` does after the network (also timed alone by the bench).
@@ -362,3 +373,5 @@ class OutcomeSegmenter:
         plane[h // 4: h // 2, w // 4: w // 2] = 1.8
         for _ in range(iterations):
             self.segment(plane)
+        if self.floor_tracker is not None:
+            self.floor_tracker = FloorTracker()  # the synthetic plane is nobody's floor

@@ -38,6 +38,7 @@ from task_outcome_ros.floor import (
     FLOOR_FIT,
     FOCAL_OVER_WIDTH,
     LEGACY_FLOOR_FIT,
+    FloorTracker,
     height_above_floor,
 )
 from task_outcome_ros.labels import NUM_CLASSES
@@ -143,12 +144,14 @@ def preprocess(depth_m: np.ndarray, input_size: tuple[int, int],
 
 def preprocess_sanitized(depth_m: np.ndarray, input_size: tuple[int, int],
                          normalisation: dict[str, Any] | None = None,
-                         intrinsics: np.ndarray | None = None) -> np.ndarray:
-    """``preprocess`` for a depth image already through ``depth.sanitize_depth``."""
+                         intrinsics: np.ndarray | None = None,
+                         floor_tracker: FloorTracker | None = None) -> np.ndarray:
+    """``preprocess`` for a depth image already through ``depth.sanitize_depth``.
+    ``floor_tracker``: keep the support plane across a static camera's frames (floor.py)."""
     depth, frac = resize_depth(depth_m, check_input_size(input_size))
     k = None if intrinsics is None else torch.as_tensor(intrinsics, dtype=torch.float32)[None]
     x = network_input(torch.from_numpy(depth)[None], torch.from_numpy(frac)[None],
-                      normalisation or DEFAULT_NORMALISATION, k)
+                      normalisation or DEFAULT_NORMALISATION, k, floor_tracker)
     return x[0].numpy()
 
 
@@ -182,7 +185,8 @@ def preprocess_batch(depth_m: torch.Tensor, input_size: tuple[int, int],
 
 def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
                   normalisation: dict[str, Any] | None = None,
-                  intrinsics: torch.Tensor | None = None) -> torch.Tensor:
+                  intrinsics: torch.Tensor | None = None,
+                  floor_tracker: FloorTracker | None = None) -> torch.Tensor:
     """(N, h, w) working-size depth (metres, as ``resize_depth`` gives) and valid fraction ->
     (N, C, h, w) network input (C = 2, or 3 with heights). Training uses this on its cached
     ``resize_depth`` output, after augmentation, so heights follow the augmented depth.
@@ -199,7 +203,8 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
     if "height_scale_m" in norm:
         use = intrinsics if norm.get("intrinsics") == INTRINSICS_FROM_CAMERA_INFO else None
         height = height_above_floor(depth, has, norm["focal_over_width"], use,
-                                    norm["floor_fit"], norm.get("support_above_floor"))
+                                    norm["floor_fit"], norm.get("support_above_floor"),
+                                    floor_tracker)
         channels.append((height / norm["height_scale_m"]).clamp(-norm["clip"], norm["clip"]))
     return torch.stack(channels, dim=1)
 

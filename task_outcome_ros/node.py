@@ -105,6 +105,11 @@ PARAMS: dict[str, _ParamSpec] = {
         "One object, one outcome: an outcome fragment smaller than this many pixels at 640x480 "
         "(scaled with image area) that touches another outcome takes that outcome; 0 = off.",
         True, f"an integer >= 0 (default {FRAGMENT_MAX_PIXELS})", (0, 1_000_000)),
+    "reuse_floor_fit": _ParamSpec(
+        True, "Static camera: keep the support-plane fit of one frame for the next while it "
+              "still fits (checked on 400 pixels; refitted when the camera moves or "
+              "camera_info changes). Status value support_plane says kept or fitted.",
+        True, "true or false"),
     "threads": _ParamSpec(
         1, "CPU threads for inference (torch and onnxruntime). 1 is the measured best on a "
            "2-core machine shared with other work (bench/inference.py).",
@@ -232,7 +237,8 @@ class OutcomeNode(Node):
                                    presence_min_pixels=self._params["presence_min_pixels"],
                                    fragment_max_pixels=self._params["fragment_max_pixels"],
                                    num_threads=self._params["threads"],
-                                   backend=self._params["backend"])
+                                   backend=self._params["backend"],
+                                   reuse_floor_fit=self._params["reuse_floor_fit"])
             seg.warmup()
         except (CheckpointError, ValueError, RuntimeError, OSError, ImportError) as exc:
             raise StartupError(

@@ -138,6 +138,8 @@ def status_fields(result: Any, intrinsics: Intrinsics | None = None, *,
     outside = list(getattr(result, "outside_envelope", []))
     values.append(("envelope", envelope_value(outside) if getattr(result, "envelope_checked",
                                                                    False) else UNCHECKED))
+    if getattr(result, "support_plane", None):  # kept from an earlier frame, or fitted anew
+        values.append(("support_plane", result.support_plane))
     values += timing_values(result.inference_ms, dropped, latency_ms)
     level = status_level(result.present)
     message = present_message(result.present)

@@ -15,6 +15,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.pipeline
@@ -66,3 +67,38 @@ def test_measured_results_hold_no_machine_paths():
     assert not re.search(r' /(work|root|home|tmp)/', text)
     results = json.loads(text)
     assert all("shipped_model_sha256" in section for section in results.values())
+
+
+def _bench_module(name: str):
+    sys.path.insert(0, str(BENCH))
+    try:
+        return __import__(name)
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+@pytest.mark.unit
+def test_soak_figures_measure_slope_and_windows():
+    soak, client = _bench_module("soak"), _bench_module("_node_client")
+    # 10 MB/min growth after a flat first minute; the slope ignores the warm-up.
+    samples = [(t, 300_000 if t < 60 else 300_000 + int((t - 60) / 60 * 10 * 1024))
+               for t in range(0, 600, 2)]
+    assert soak.rss_slope_mb_per_min(samples, 60.0) == pytest.approx(10.0, abs=0.05)
+    assert soak.rss_slope_mb_per_min(samples[:2], 0.0) is None
+    # Windows: frames published at 0..119 s (1 Hz), every other one answered, lag = index.
+    published = np.arange(120.0)
+    answered = np.arange(0, 120, 2)
+    lag = answered.astype(float)
+    wins = client.windows(published, answered, lag, 60.0)
+    assert [w["published"] for w in wins] == [60, 60]
+    assert [w["fraction_answered"] for w in wins] == [0.5, 0.5]
+    assert wins[1]["lag_p95_ms"] > wins[0]["lag_p95_ms"]
+    throughput = {"windows": wins, "published": 120, "fraction_answered": 0.5,
+                  "dropped_frames_node": 60, "lost_before_node": 0, "lag_ms": {},
+                  "node_cpu_percent": 50.0,
+                  "node_rss_kb": {"start": 300_000, "end": 400_000, "max": 400_000,
+                                  "samples_t_s_kb": samples}}
+    figures = soak.verdict(throughput, 120.0)
+    assert not figures["answered_ok"]
+    assert figures["lag_p95_worst_over_best"] == pytest.approx(
+        wins[1]["lag_p95_ms"] / wins[0]["lag_p95_ms"], abs=0.01)

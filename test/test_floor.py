@@ -13,6 +13,7 @@ from task_outcome_ros.floor import (
     FLOOR_FIT,
     FOCAL_OVER_WIDTH,
     LEGACY_FLOOR_FIT,
+    FloorTracker,
     backproject,
     height_above_floor,
 )
@@ -216,3 +217,53 @@ def test_support_band_is_validated_and_kept_by_the_normalisation() -> None:
     for bad in ([0.8, 0.7], [0.0, 0.5], 0.75, "table"):
         with pytest.raises(ValueError, match="support_above_floor"):
             check_normalisation(dict(DEFAULT_NORMALISATION, support_above_floor=bad))
+
+
+def _noisy(depth: np.ndarray, seed: int, sd_m: float = 0.002) -> torch.Tensor:
+    """The same view again with fresh axial noise: the next frame of a static camera."""
+    rng = np.random.default_rng(seed)
+    return torch.from_numpy(depth + rng.normal(0.0, sd_m, depth.shape).astype(np.float32))[None]
+
+
+def test_floor_tracker_keeps_a_static_cameras_plane_and_refits_when_it_moves() -> None:
+    scene = _tilted_scene()
+    valid = torch.ones(1, *scene.shape, dtype=torch.bool)
+    tracker = FloorTracker()
+    fresh, kept = [], []
+    for seed in range(4):
+        frame = _noisy(scene, seed)
+        fresh.append(height_above_floor(frame, valid)[0].numpy())
+        kept.append(height_above_floor(frame, valid, tracker=tracker)[0].numpy())
+    assert (tracker.refits, tracker.reused) == (1, 3)
+    # A kept plane is one frame's fit: its heights agree with a fresh fit within the noise.
+    box = np.zeros(scene.shape, bool)
+    box[45:55, 58:75] = True
+    for a, b in zip(fresh, kept, strict=True):
+        assert abs(np.median(a[box]) - np.median(b[box])) < 0.002
+        assert abs(np.median(b[box]) - 0.3) < 0.005
+    # The camera drops 2 cm (more than the inlier band): the kept plane no longer fits.
+    lower = _noisy(_tilted_scene(camera_height=1.48), 9)
+    moved = height_above_floor(lower, valid, tracker=tracker)[0].numpy()
+    assert tracker.refits == 2 and abs(np.median(moved[box]) - 0.3) < 0.005
+    # New intrinsics refit without a check, even for the same depth.
+    k = torch.tensor([[FOCAL_OVER_WIDTH * 1.02, FOCAL_OVER_WIDTH * 160 / 120 * 1.02, 0, 0]])
+    height_above_floor(lower, valid, intrinsics=k, tracker=tracker)
+    assert tracker.refits == 3
+    with pytest.raises(ValueError, match="one image at a time"):
+        height_above_floor(torch.cat([lower, lower]), valid.expand(2, -1, -1),
+                           tracker=tracker)
+
+
+def test_floor_tracker_refits_when_a_table_top_leaves_the_view() -> None:
+    depth, valid, table = _table_scene()
+    tracker = FloorTracker()
+    band = (0.7, 0.8)
+    first = height_above_floor(depth, valid, support_above_floor=band, tracker=tracker)
+    assert abs(np.median(first[0].numpy()[table])) < 0.002
+    # Most of the table top now invalid (e.g. covered): its plane no longer holds the share
+    # of checked pixels it had, so the next frame is fitted afresh.
+    covered = valid.clone()
+    covered[0, :, : int(0.9 * depth.shape[2])] &= ~torch.from_numpy(table)[:, : int(
+        0.9 * depth.shape[2])]
+    height_above_floor(depth, covered, support_above_floor=band, tracker=tracker)
+    assert tracker.refits == 2 and tracker.reused == 0

@@ -151,13 +151,15 @@ def check_reply(request, reply) -> np.ndarray:
                             else DiagnosticStatus.OK)
     assert float(values["inference_ms"]) >= 0 and float(values["latency_ms"]) >= 0
     assert int(values["dropped_frames"]) >= 0
+    # reuse_floor_fit (default true): every frame with depth says what its plane was.
+    assert values.get("support_plane", "fitted") in ("kept", "fitted")
     return labels
 
 
 def test_parameters_declared_with_descriptions_and_defaults(session):
     client, _ = session
     names = ["model_path", "device", "backend", "presence_min_pixels", "fragment_max_pixels",
-             "publish_overlay", "overlay_alpha", "publish_markers", "qos"]
+             "publish_overlay", "overlay_alpha", "publish_markers", "qos", "reuse_floor_fit"]
     describe = client.node.create_client(rcl_srv.DescribeParameters,
                                          "/outcome_node/describe_parameters")
     get = client.node.create_client(rcl_srv.GetParameters, "/outcome_node/get_parameters")
@@ -183,6 +185,7 @@ def test_parameters_declared_with_descriptions_and_defaults(session):
     assert 0.0 <= values["overlay_alpha"].double_value <= 1.0
     assert values["model_path"].string_value.endswith("fell_everywhere.pt")
     assert values["publish_markers"].bool_value is True
+    assert values["reuse_floor_fit"].bool_value is True
 
 
 def _set_parameters(client, params) -> list:
@@ -530,6 +533,23 @@ def test_overlay_is_made_only_while_someone_listens_and_again_when_they_return(s
     client.spin_until(lambda: False, 0.5)
     again = nh.depth_msg(scene(), stamp=client.next_stamp())
     check_reply(again, client.request(again, ALL_OUTPUTS))
+    assert proc.alive()
+
+
+def test_a_static_camera_keeps_its_support_plane_and_a_moved_one_refits(session):
+    """reuse_floor_fit: the same view again keeps the plane (same labels); another view
+    (the camera 20 cm higher) is fitted afresh."""
+    client, proc = session
+    view = scene()
+    replies = []
+    for _ in range(2):
+        msg = nh.depth_msg(view, stamp=client.next_stamp())
+        reply = client.request(msg, ("status", "labels"))
+        replies.append((labels_array(reply.labels), nh.status_values(reply.status)))
+    assert replies[1][1]["support_plane"] == "kept"
+    assert np.array_equal(replies[0][0], replies[1][0])
+    moved = nh.depth_msg(view + np.float32(0.2), stamp=client.next_stamp())
+    assert nh.status_values(client.request(moved).status)["support_plane"] == "fitted"
     assert proc.alive()
 
 

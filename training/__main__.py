@@ -242,7 +242,7 @@ def add_robustness_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--images", type=positive_int, default=100,
                    help="validation episodes per stress point (default 100)")
     p.add_argument("--eval-out", type=Path, default=None,
-                   help="where robustness.json goes (default: <out>/robustness)")
+                   help="where robustness.json goes (default: <data>/robustness)")
 
 
 def add_eval_args(p: argparse.ArgumentParser) -> None:
@@ -272,7 +272,7 @@ def cmd_robustness(args) -> None:
     from training.robustness import run_robustness
 
     data = args.data or Path(args.out)
-    out = args.eval_out or Path(args.out) / "robustness"
+    out = args.eval_out or Path(data) / "robustness"  # beside the data it stressed
     report = run_robustness(args.checkpoint, data, out, images=args.images)
     for factor, entry in report["factors"].items():
         pairs = ", ".join(f"{v}: {a:.3f}" for v, a in zip(entry["values"],
