@@ -102,16 +102,17 @@ def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds:
     domain_id = random.randint(1, 200)
     env = scenario_env(domain_id, shm)
     log_path, out = tmp / f"{name}.node.log", tmp / f"{name}.json"
+    floor_log = tmp / f"{name}.floor.log"
     node = client = floor = None
     start, udp0, load0 = time.monotonic(), udp_counters(), load_average()
     try:
-        with open(log_path, "w") as log:
+        with open(log_path, "w") as log, open(floor_log, "w") as flog:
             node = subprocess.Popen(
                 node_command() + ["--ros-args", "-p", f"model_path:={model}", "-p", f"qos:={qos}"],
                 env=env, stdout=log, stderr=subprocess.STDOUT)
             client_args = ["--node-pid", str(node.pid)]
             if latency_frames:  # the floor, measured in the same run, frame by frame
-                floor = subprocess.Popen(floor_command(qos), env=env, stdout=log,
+                floor = subprocess.Popen(floor_command(qos), env=env, stdout=flog,
                                          stderr=subprocess.STDOUT)
                 client_args += ["--floor-pid", str(floor.pid)]
             client = subprocess.Popen(

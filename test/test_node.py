@@ -602,6 +602,26 @@ def test_node_without_training_dependencies_flags_frames_outside_its_envelope(tm
     assert "Traceback" not in proc.log(), proc.log()
 
 
+def test_shipped_tote_model_loads_by_name_and_knows_its_envelope(tmp_path):
+    """model_path:=tote starts the shipped tote model; a frame of the default task's scene
+    (a floor 2.2 m away) is outside the tote's envelope (cameras at 0.5-1.3 m), so never OK."""
+    domain = (DOMAIN_ID + 70) % 200 + 1
+    proc = nh.NodeProcess(["-p", "model_path:=tote"], domain, tmp_path / "node.log")
+    client = nh.OutcomeClient(domain)
+    try:
+        client.wait_for_node(proc)
+        assert "outcome_fcn_tote.pt" in proc.log()
+        msg = nh.depth_msg(scene(), stamp=client.next_stamp())
+        reply = client.request(msg, ("status", "labels"), resend_every=0.5)
+        check_reply(msg, reply)
+        (status,) = reply.status.status
+        assert status.level == DiagnosticStatus.WARN
+        assert "depth" in nh.status_values(reply.status)["envelope"]
+    finally:
+        client.close()
+        assert proc.stop() == 0
+
+
 def test_shutdown_is_clean(session, band_session):
     """Last: SIGINT ends both nodes with exit code 0 and no traceback."""
     for _, proc in (session, band_session):
