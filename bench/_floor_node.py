@@ -23,13 +23,19 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import Image
 
-from task_outcome_ros.node import OUTPUT_QOS, STATUS_NAME, interrupt_on_signals, subscription_qos
+from task_outcome_ros.node import (
+    OUTPUT_QOS,
+    QOS_CHOICES,
+    STATUS_NAME,
+    interrupt_on_signals,
+    subscription_qos,
+)
 from task_outcome_ros.topics import DEPTH_TOPIC, LABELS_TOPIC, STATUS_TOPIC
 
 
 def main() -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--qos", choices=("sensor_data", "reliable"), default="sensor_data")
+    parser.add_argument("--qos", choices=QOS_CHOICES, default=QOS_CHOICES[0])
     args, ros_args = parser.parse_known_args()
     rclpy.init(args=[sys.argv[0], *ros_args], signal_handler_options=SignalHandlerOptions.NO)
     interrupt_on_signals()

@@ -94,11 +94,10 @@ def windows(published_s: np.ndarray, answered: np.ndarray, lag_ms: np.ndarray,
     out = []
     which = (published_s // window_s).astype(int)
     for w in range(int(which.max()) + 1 if which.size else 0):
-        mine = answered[which[answered] == w] if answered.size else answered
-        lags = lag_ms[which[answered] == w] if answered.size else lag_ms
+        lags = lag_ms[which[answered] == w]       # the answered frames published in w
         sent = int((which == w).sum())
         out.append({"start_s": round(w * window_s, 1), "published": sent,
-                    "fraction_answered": round(mine.size / max(1, sent), 4),
+                    "fraction_answered": round(lags.size / max(1, sent), 4),
                     "lag_p50_ms": round(float(np.percentile(lags, 50)), 2) if lags.size else None,
                     "lag_p95_ms": round(float(np.percentile(lags, 95)), 2) if lags.size else None})
     return out

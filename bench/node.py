@@ -153,13 +153,14 @@ def summary(s: dict) -> dict:
     lat = s.get("latency")
     if lat:
         e2e = lat.get("end_to_end_ms") or {}
-        floor = (lat.get("floor") or {}).get("end_to_end_ms") or {}
+        floor_lat = lat.get("floor") or {}
+        floor = floor_lat.get("end_to_end_ms") or {}
         out.update(latency_p50_ms=e2e.get("p50"), latency_p95_ms=e2e.get("p95"),
                    latency_unanswered=f"{lat['unanswered']}/{lat['frames']}",
                    floor_p50_ms=floor.get("p50"), floor_p95_ms=floor.get("p95"),
                    ratio_to_floor=lat.get("ratio_to_floor"),
                    cpu_ms_per_frame=lat.get("cpu_ms_per_frame"),
-                   floor_cpu_ms_per_frame=(lat.get("floor") or {}).get("cpu_ms_per_frame"))
+                   floor_cpu_ms_per_frame=floor_lat.get("cpu_ms_per_frame"))
     tp = s.get("throughput")
     if tp:
         out.update(fraction_answered=tp["fraction_answered"], answered_hz=tp["answered_hz"],

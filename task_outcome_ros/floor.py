@@ -215,7 +215,8 @@ class FloorTracker:
     by more than the band (8 mm) loses most inliers, so it refits; new intrinsics, another
     image size or another fit configuration refit at once. Objects arriving on the floor
     cover a few of the checked pixels, which the slack allows for. One image at a time (the
-    node's frames); ``reused`` and ``refits`` count what happened.
+    node's frames); ``last`` says what the latest call did ("kept" or "fitted"; callers may
+    clear it to None before a frame), ``reused`` and ``refits`` count what happened.
     """
 
     CHECK_POINTS = 400
@@ -229,6 +230,7 @@ class FloorTracker:
         self._pixels: torch.Tensor | None = None       # flat indices, drawn per size
         self.reused = 0
         self.refits = 0
+        self.last: str | None = None
 
     def reset(self) -> None:
         """Forget the plane: the next frame is fitted afresh."""
@@ -245,6 +247,7 @@ class FloorTracker:
             if (inlier >= self.KEEP_SHARE * fit_inlier
                     and beneath <= fit_beneath + self.MAX_BENEATH_GAIN):
                 self.reused += 1
+                self.last = "kept"
                 return self._plane
         normal, offset = support_plane(points, valid, version, support_above_floor)
         if key != self._key or self._pixels is None:   # fixed check pixels for this size
@@ -254,6 +257,7 @@ class FloorTracker:
         self._key, self._plane = key, (normal, offset)
         self._at_fit = self._shares(points, valid, normal, offset, version)
         self.refits += 1
+        self.last = "fitted"
         return normal, offset
 
     def _shares(self, points: torch.Tensor, valid: torch.Tensor, normal: torch.Tensor,

@@ -302,14 +302,14 @@ class OutcomeSegmenter:
                              f"image, the depth image is {depth.shape[1]} x {depth.shape[0]}")
         small = None  # an all-invalid frame: nothing seen, nothing present (a defined answer)
         x = None
-        kept_before = self.floor_tracker.reused if self.floor_tracker else 0
+        if self.floor_tracker is not None:
+            self.floor_tracker.last = None  # set again only if this frame's heights use it
         if np.isfinite(depth).any():
             x = self.prepare(depth, intrinsics)
             small = self._predict_small(x)
         result = self.postprocess(small, depth)
-        if self.floor_tracker is not None and x is not None:
-            result.support_plane = ("kept" if self.floor_tracker.reused > kept_before
-                                    else "fitted")
+        if self.floor_tracker is not None:
+            result.support_plane = self.floor_tracker.last
         result.stats = self._frame_stats(x, small, depth)
         result.outside_envelope = check(self.envelope, result.stats, intrinsics)
         result.envelope_checked = self.envelope is not None
@@ -374,4 +374,4 @@ class OutcomeSegmenter:
         for _ in range(iterations):
             self.segment(plane)
         if self.floor_tracker is not None:
-            self.floor_tracker = FloorTracker()  # the synthetic plane is nobody's floor
+            self.floor_tracker.reset()  # the synthetic plane is nobody's floor

@@ -307,3 +307,17 @@ def test_normalisation_intrinsics_field_is_checked() -> None:
     with pytest.raises(ValueError, match="height channel"):
         check_normalisation(dict(TWO_CHANNEL_NORMALISATION,
                                  intrinsics=INTRINSICS_FROM_CAMERA_INFO))
+
+
+def test_reuse_floor_fit_reports_what_each_frame_did(ckpt: Path) -> None:
+    """A stream's segmenter keeps the plane of a repeated view, and a frame without depth
+    (no heights computed) reports nothing rather than an earlier frame's answer."""
+    from test_floor import _tilted_scene
+
+    seg = OutcomeSegmenter(ckpt, backend="torch", reuse_floor_fit=True)
+    seg.warmup()
+    depth = _tilted_scene(h=480, w=640)
+    assert seg.segment(depth).support_plane == "fitted"
+    assert seg.segment(depth).support_plane == "kept"
+    assert seg.segment(np.full_like(depth, np.nan)).support_plane is None
+    assert OutcomeSegmenter(ckpt, backend="torch").segment(depth).support_plane is None
