@@ -7,6 +7,8 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 # The task to train for: a bundled spec's name (default, tote) or a spec file.
 SCENE  ?= default
+# The shipped task `make demo` runs on (default, tote, shelf).
+TASK   ?= default
 RUN    := $(if $(filter default,$(SCENE)),,_$(basename $(notdir $(SCENE))))
 
 .PHONY: setup demo test test-unit test-all train ship bench lint clean
@@ -24,7 +26,7 @@ $(STAMP): requirements.txt requirements-runtime.txt setup.py setup.cfg package.x
 # The whole story on a small simulated bag: generate, start outcome_node, replay over DDS,
 # record, score against ground truth, write a contact sheet and a summary.
 demo: $(STAMP)
-	$(PY) -m training demo --out runs/demo
+	$(PY) -m training demo --out runs/demo$(if $(filter default,$(TASK)),,_$(TASK)) --task $(TASK)
 
 # Fast suite (CI): unit tests, the real node over DDS, a small end-to-end pipeline run.
 test: $(STAMP)

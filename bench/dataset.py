@@ -3,6 +3,7 @@
     python bench/dataset.py                      # the default 10,000-episode run (~5 min)
     python bench/dataset.py --episodes 2000 --seeds 5   # discovery stability over seeds
     python bench/dataset.py --scene tote --seeds 5 --seed-episodes 1500 --seeds-only
+    python bench/dataset.py --scene shelf --seeds 5 --seed-episodes 1500 --seeds-only
 
 Writes the ``dataset`` (and ``discovery_seeds``) sections of bench/results.json; with
 ``--scene`` other than default, ``dataset.<scene>`` and ``discovery_seeds.<scene>``.
@@ -91,15 +92,17 @@ def main() -> None:
                        "--episodes", str(args.seed_episodes), "--seed", str(seed),
                        "--scene", args.scene]
                 subprocess.run(cmd, check=True, stderr=subprocess.DEVNULL)
-                subprocess.run([*cmd[:3], "discover", "--out", tmp], check=True)
+                subprocess.run([*cmd[:3], "discover", "--out", tmp, "--scene", args.scene],
+                               check=True)
                 d = json.loads((Path(tmp) / "discovery.json").read_text())
             per_seed.append({"seed": seed, "n_clusters": d["n_clusters"],
                              "ari_vs_geometry": d["ari_vs_geometry"],
                              "cluster_names": d["cluster_names"],
                              "outcome_fractions": d["outcome_fractions"]})
-        record("discovery_seeds" + suffix, {"episodes": args.seed_episodes, "runs": per_seed,
-                                   "all_three_clusters": all(r["n_clusters"] == 3
-                                                             for r in per_seed)}, command)
+        record("discovery_seeds" + suffix, {
+            "episodes": args.seed_episodes, "runs": per_seed,
+            "all_three_clusters": all(r["n_clusters"] == 3 for r in per_seed),
+            "min_ari_vs_geometry": min(r["ari_vs_geometry"] for r in per_seed)}, command)
 
 
 if __name__ == "__main__":

@@ -38,6 +38,7 @@ CONFIGS = (("fp32", False, False), ("fp32", True, False), ("bf16", False, False)
 
 
 def load_arrays(size: tuple[int, int]) -> tuple[dict, str]:
+    from task_outcome_ros.labels import DEFAULT_TABLE
     from training.dataset import cache_path
 
     path = cache_path(REPO / "runs" / "default", "train", size)
@@ -50,7 +51,7 @@ def load_arrays(size: tuple[int, int]) -> tuple[dict, str]:
     v = np.linspace(-0.3, 0.3, h, dtype=np.float32)[:, None]
     depth = (2.0 + v + rng.normal(0, 0.004, (512, h, w))).astype(np.float32)
     return ({"depth": depth, "valid": np.ones_like(depth),
-             "labels": rng.integers(0, 5, depth.shape).astype(np.uint8)},
+             "labels": rng.integers(0, DEFAULT_TABLE.num_classes, depth.shape).astype(np.uint8)},
             "synthetic tilted planes (no runs/default cache)")
 
 
@@ -88,7 +89,9 @@ def main() -> None:
     torch.manual_seed(0)
     arrays, source = load_arrays(cfg.input_size)
     n = len(arrays["depth"])
-    weights = class_weights(arrays["labels"], cfg.class_weight_power)
+    # The default task's classes, as the nets below have (the timing does not depend on them).
+    weights = class_weights(arrays["labels"], cfg.class_weight_power,
+                            cfg.model_args["num_classes"])
     nets = {}
     for dtype, channels_last, iou_loss in configs:
         net = build_model(cfg.model_args)

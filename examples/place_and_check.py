@@ -4,8 +4,11 @@ A fake "place" node stands in for the robot and its depth camera. For each place
 the depth frames of one recorded scene (from a bag, restamped with the current time, as a
 camera would), "finishes" the place, calls ``outcome/check`` and reacts:
 
-    success                      -> next place
-    fell_outside / stuck_on_rim  -> "retry", with the object's 3-D position in the camera frame
+    only success-like outcomes   -> next place
+    a failure mode               -> "retry", with the object's 3-D position in the camera frame
+
+The outcomes are the model's (its label table: success, fell_outside and stuck_on_rim for
+the default task); the node's reply names them, so nothing here assumes a task.
 
     python examples/place_and_check.py runs/demo/input_bag --places 5
 
@@ -28,7 +31,6 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from task_outcome_ros import bag_io
 from task_outcome_ros.client import CheckError, OutcomeCheckClient, parse
 from task_outcome_ros.ground_truth import load_ground_truth
-from task_outcome_ros.labels import OUTCOME_NAMES
 
 CAMERA_HZ = 15.0
 
@@ -129,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
             if result.envelope.startswith("outside"):
                 line += f" ({result.envelope})"
             if expected is not None:
-                present = [n for n in OUTCOME_NAMES if expected["present"][n]]
+                present = [name for name, there in expected["present"].items() if there]
                 line += f"   [truth: {','.join(present) or 'nothing'}]"
             print(line, flush=True)
     except CheckError as exc:

@@ -49,7 +49,12 @@ from task_outcome_ros.bag_io import (
 from task_outcome_ros.cli_args import non_negative_int, positive_int
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from task_outcome_ros.frames import FrameOutputs, process_frame
-from task_outcome_ros.ground_truth import GROUND_TRUTH_FILE, load_ground_truth, score
+from task_outcome_ros.ground_truth import (
+    GROUND_TRUTH_FILE,
+    load_ground_truth,
+    require_outcomes,
+    score,
+)
 
 SCORE_FILE = "score.json"
 SUMMARY_FILE = "summary.json"
@@ -91,6 +96,8 @@ def process_bag(in_bag: Path, out_bag: Path | None = None, *, model: str | None 
                                "another --namespace")
         segmenter = _segmenter(model, device, backend, presence_min_pixels, num_threads,
                                fragment_max_pixels)
+        if ground_truth is not None:  # a model of another task fails before the first frame
+            require_outcomes(ground_truth, segmenter.table.outcome_names)
         writer = open_writer(out_bag, storage or bag_storage(in_bag), overwrite)
         try:
             copied = {c.id: copy_connection(writer, c) for c in reader.connections} \
@@ -101,7 +108,7 @@ def process_bag(in_bag: Path, out_bag: Path | None = None, *, model: str | None 
             wanted = reader.connections if copy_input else \
                 [c for c in (image_conn, info_conn) if c is not None]
             t0 = time.perf_counter()
-            stats = _Stats()
+            stats = _Stats(segmenter.table)
             camera_info = None
             bar = tqdm(total=image_conn.msgcount, desc="outcome_bag", unit="frame",
                        disable=not progress)
@@ -180,10 +187,10 @@ def _write_frame(writer: Any, out: dict, frame: FrameOutputs, log_time: int) -> 
 
 
 class _Stats:
-    def __init__(self) -> None:
+    def __init__(self, table: L.LabelTable) -> None:
         self.frames = 0
         self.errors: list[str] = []
-        self.present = dict.fromkeys(L.OUTCOME_NAMES, 0)
+        self.present = dict.fromkeys(table.outcome_names, 0)  # frames each outcome is in
         self.levels = {"OK": 0, "WARN": 0, "ERROR": 0}
         self.inference_ms: list[float] = []
         self.predicted: dict[int, dict[str, bool] | None] = {}

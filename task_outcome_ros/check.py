@@ -18,8 +18,7 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
-from task_outcome_ros import labels as L
-from task_outcome_ros.outcome_report import ERROR
+from task_outcome_ros.outcome_report import ERROR, status_outcomes
 
 SCHEMA = "task_outcome_ros/check/1"
 
@@ -91,23 +90,25 @@ def frame_answer(stamp: tuple[int, int], frame_id: str, fields: Any,
     """The reply for one processed frame. ``fields``: its outcome_report.StatusFields.
 
     ``success`` only when nothing but success-like outcomes are present (or nothing at all)
-    and the frame is not outside the trained envelope.
+    and the frame is not outside the trained envelope. Which outcomes there are, and which
+    are failure modes, the status itself says (its ``label_table`` value): any task's model.
     """
     values = dict(fields.values)
     if fields.level == ERROR:
         summary = {"schema": SCHEMA, "stamp": _stamp(stamp), "frame_id": frame_id,
                    "reason": f"frame not processed: {fields.message}"}
         return Answer(False, json.dumps(summary, separators=(",", ":")))
-    present = [n for n in L.OUTCOME_NAMES if values.get(f"{n}.present") == "true"]
+    outcomes = status_outcomes(values)
+    present = [n for n in outcomes.names if values.get(f"{n}.present") == "true"]
     failures = []
-    for name in L.FAILURE_OUTCOMES:
+    for name in outcomes.failures:
         for k in range(int(values.get(f"{name}.objects", 0))):
             failures.append({"outcome": name,
                              "centroid_px": _floats(values.get(f"{name}.{k}.centroid_px")),
                              "centroid_m": _floats(values.get(f"{name}.{k}.centroid_m"))})
     envelope = values.get("envelope", "unchecked")
     outside = bool(outside_envelope)
-    failed = [n for n in present if n in L.FAILURE_OUTCOMES]
+    failed = [n for n in present if n in outcomes.failures]
     reason = ("outside the trained envelope" if outside
               else f"failure: {','.join(failed)}" if failed else "success")
     summary = {"schema": SCHEMA, "stamp": _stamp(stamp), "frame_id": frame_id,

@@ -6,7 +6,10 @@ loads with ``weights_only=True``, which never runs code from the file):
 - ``format`` / ``format_version``: identify our files and their layout,
 - ``model_class``, ``model_args``, ``state_dict``: the network,
 - ``input_size`` (W, H), ``normalisation``: what ``model.preprocess`` must do,
-- ``label_table``: ``labels.label_table()`` at training time (must match the code's),
+- ``label_table``: the task's ``labels.LabelTable`` as ``to_dict()`` (classes by id: name,
+  colour, failure or not); the model has one output channel per class. Checkpoints made
+  before tables travelled as data hold the default task's {name: id} and load as
+  ``DEFAULT_TABLE``,
 - ``train_config``, ``metrics``, optional ``optimizer_state`` and ``extra``,
 - ``created_utc``, ``torch_version``, ``package_version``: provenance.
 """
@@ -29,7 +32,7 @@ import torch
 from torch import nn
 
 from task_outcome_ros import __version__
-from task_outcome_ros.labels import label_table
+from task_outcome_ros.labels import DEFAULT_TABLE, LabelTable, LabelTableError
 from task_outcome_ros.model import (
     OutcomeFCN,
     build_model,
@@ -42,6 +45,8 @@ FORMAT = "task_outcome_ros.checkpoint"
 FORMAT_VERSION = 1
 SUPPORTED_VERSIONS = (1,)
 MODEL_CLASSES = {"OutcomeFCN": OutcomeFCN}
+# The state-dict entry of each model class's final classifier: its rows are the classes.
+CLASSIFIER_WEIGHT = {"OutcomeFCN": "head.weight"}
 
 
 class CheckpointError(ValueError):
@@ -54,7 +59,7 @@ class LoadedCheckpoint:
     model_args: dict[str, Any]
     input_size: tuple[int, int]         # (W, H) working resolution
     normalisation: dict[str, Any]
-    label_table: dict[str, int]
+    label_table: LabelTable
     train_config: dict[str, Any]
     metrics: dict[str, Any]
     format_version: int
@@ -102,13 +107,23 @@ def save(path: str | Path, model: nn.Module, *, model_args: dict[str, Any],
          input_size: tuple[int, int], normalisation: dict[str, Any],
          train_config: dict[str, Any] | Any, metrics: dict[str, Any],
          optimizer_state: dict[str, Any] | None = None,
-         extra: dict[str, Any] | None = None) -> Path:
-    """Write a checkpoint atomically (temp file in the same folder, then rename)."""
+         extra: dict[str, Any] | None = None,
+         label_table: LabelTable = DEFAULT_TABLE) -> Path:
+    """Write a checkpoint atomically (temp file in the same folder, then rename).
+
+    ``label_table``: the task's classes; the model must have one output channel per class
+    (ValueError otherwise), since the node names channel k ``label_table.classes[k]``."""
     path = Path(path)
     model_class = type(model).__name__
     if model_class not in MODEL_CLASSES:
         raise TypeError(f"cannot save a {model_class}; expected one of {sorted(MODEL_CLASSES)}")
+    if not isinstance(label_table, LabelTable):
+        raise TypeError(f"label_table must be a labels.LabelTable, got "
+                        f"{type(label_table).__name__}")
     state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    problem = _table_mismatch(label_table, model_args, state, model_class)
+    if problem:
+        raise ValueError(f"cannot save {path}: {problem}")
     payload = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -117,7 +132,7 @@ def save(path: str | Path, model: nn.Module, *, model_args: dict[str, Any],
         "state_dict": state,
         "input_size": list(check_input_size(input_size)),
         "normalisation": check_normalisation(normalisation),
-        "label_table": label_table(),
+        "label_table": label_table.to_dict(),
         "train_config": to_plain(train_config, "train_config"),
         "metrics": to_plain(metrics, "metrics"),
         "optimizer_state": optimizer_state,
@@ -172,6 +187,29 @@ def _require(payload: dict, key: str, types: type | tuple[type, ...], path: Path
     return value
 
 
+def _table_mismatch(table: LabelTable, model_args: dict[str, Any], state: dict[str, Any],
+                    model_class: str) -> str | None:
+    """Why the network's outputs are not one per class of ``table`` (None: they are)."""
+    # A model_args without the key builds the default number of classes (model.py).
+    declared = model_args.get("num_classes", DEFAULT_TABLE.num_classes)
+    if declared != table.num_classes:
+        return (f"model_args num_classes={declared!r} but the label table has "
+                f"{table.num_classes} classes {list(table.classes)}")
+    weight = state.get(CLASSIFIER_WEIGHT[model_class])
+    if isinstance(weight, torch.Tensor) and weight.dim() and weight.shape[0] != table.num_classes:
+        return (f"the classifier's weights have {int(weight.shape[0])} outputs but the label "
+                f"table has {table.num_classes} classes {list(table.classes)}")
+    return None
+
+
+def _read_table(payload: dict, path: Path) -> LabelTable:
+    raw = _require(payload, "label_table", dict, path)
+    try:
+        return LabelTable.from_dict(raw)
+    except LabelTableError as exc:
+        raise CheckpointError(f"checkpoint {path}: unusable label table: {exc}") from None
+
+
 def resolve_device(device: str) -> torch.device:
     """'cpu' | 'cuda' | 'cuda:N' | 'auto' (cuda when available) -> torch.device."""
     if device == "auto":
@@ -206,17 +244,16 @@ def load(path: str | Path, device: str = "cpu") -> LoadedCheckpoint:
     if version not in SUPPORTED_VERSIONS:
         raise CheckpointError(f"checkpoint {path}: format_version {version!r} is not "
                               f"supported by this code (supported: {SUPPORTED_VERSIONS})")
-    table = _require(payload, "label_table", dict, path)
-    if table != label_table():
-        raise CheckpointError(f"checkpoint {path}: label table {table} does not match this "
-                              f"code's labels.label_table() {label_table()}; retrain or use "
-                              "the matching package version")
+    table = _read_table(payload, path)
     model_class = _require(payload, "model_class", str, path)
     if model_class not in MODEL_CLASSES:
         raise CheckpointError(f"checkpoint {path}: unknown model_class '{model_class}', "
                               f"expected one of {sorted(MODEL_CLASSES)}")
     model_args = _require(payload, "model_args", dict, path)
     state = _require(payload, "state_dict", dict, path)
+    problem = _table_mismatch(table, model_args, state, model_class)
+    if problem:
+        raise CheckpointError(f"checkpoint {path}: {problem}")
     raw_size = _require(payload, "input_size", (list, tuple), path)
     raw_norm = _require(payload, "normalisation", dict, path)
     try:
@@ -244,7 +281,7 @@ def load(path: str | Path, device: str = "cpu") -> LoadedCheckpoint:
     model.to(torch_device).eval()
     return LoadedCheckpoint(
         model=model, model_args=dict(model_args), input_size=input_size,
-        normalisation=normalisation, label_table=dict(table),
+        normalisation=normalisation, label_table=table,
         train_config=payload.get("train_config") or {}, metrics=payload.get("metrics") or {},
         format_version=int(version), path=path, sha256=hashlib.sha256(data).hexdigest(),
         created_utc=str(payload.get("created_utc", "")),

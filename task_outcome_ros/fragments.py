@@ -26,13 +26,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from task_outcome_ros.labels import OUTCOME_IDS, scale_pixel_count
+from task_outcome_ros.labels import DEFAULT_TABLE, LabelTable, scale_pixel_count
 
 # Largest fragment absorbed, in pixels of a 640 x 480 image (scaled with the area like the
 # presence rule's 50): 32 pixels at the 160 x 120 working size.
 FRAGMENT_MAX_PIXELS = 512
 
-_OUTCOME_IDS = np.array(sorted(OUTCOME_IDS.values()), np.uint8)
 _RING = np.ones((3, 3), np.uint8)
 
 
@@ -43,11 +42,14 @@ def fragment_threshold(height: int, width: int, max_pixels: int = FRAGMENT_MAX_P
     return scale_pixel_count(max_pixels, height, width)
 
 
-def absorb_fragments(labels: np.ndarray, max_pixels: int) -> np.ndarray:
+def absorb_fragments(labels: np.ndarray, max_pixels: int,
+                     table: LabelTable = DEFAULT_TABLE) -> np.ndarray:
     """A copy of ``labels`` (uint8 class ids) with outcome fragments < ``max_pixels`` absorbed.
 
-    ``max_pixels`` is in pixels of *this* image (see ``fragment_threshold``). Decisions are
-    taken on the input labels, so the result does not depend on the order of the classes.
+    ``max_pixels`` is in pixels of *this* image (see ``fragment_threshold``); ``table`` says
+    which ids are outcomes (the fixture and background are never absorbed nor absorb).
+    Decisions are taken on the input labels, so the result does not depend on the order of
+    the classes.
     """
     labels = np.asarray(labels)
     if labels.ndim != 2 or labels.dtype != np.uint8:
@@ -56,8 +58,9 @@ def absorb_fragments(labels: np.ndarray, max_pixels: int) -> np.ndarray:
     if max_pixels <= 1:
         return out
     h, w = labels.shape
-    is_outcome = np.isin(labels, _OUTCOME_IDS)
-    for outcome in _OUTCOME_IDS:
+    outcome_ids = np.array(sorted(table.outcome_ids.values()), np.uint8)
+    is_outcome = np.isin(labels, outcome_ids)
+    for outcome in outcome_ids:
         mask = (labels == outcome).astype(np.uint8)
         n, cc, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
         for k in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < max_pixels) + 1:
@@ -70,6 +73,6 @@ def absorb_fragments(labels: np.ndarray, max_pixels: int) -> np.ndarray:
             ring = cv2.dilate(part, _RING).astype(bool) & ~part.astype(bool)
             neighbours = labels[y0:y1, x0:x1][ring & is_outcome[y0:y1, x0:x1]]
             if neighbours.size:
-                votes = np.bincount(neighbours, minlength=int(_OUTCOME_IDS.max()) + 1)
+                votes = np.bincount(neighbours, minlength=int(outcome_ids.max()) + 1)
                 out[y0:y1, x0:x1][part.astype(bool)] = np.uint8(votes.argmax())
     return out

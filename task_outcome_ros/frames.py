@@ -63,7 +63,8 @@ def frame_intrinsics(camera_info: Any | None, width: int, height: int,
 def process_frame(segmenter: Any, msg: Any, camera_info: Any | None, *,
                   overlay_alpha: float | None = None, t_start: float | None = None,
                   dropped: int = 0) -> FrameOutputs:
-    """Decode ``msg``, segment it with ``segmenter`` and build the status fields.
+    """Decode ``msg``, segment it with ``segmenter`` (an ``OutcomeSegmenter``: ``segment``
+    and its label ``table``) and build the status fields.
 
     ``overlay_alpha`` None: no overlay (nobody asked for it). ``t_start`` (time.monotonic)
     is when the frame arrived, for ``latency_ms``; ``dropped`` is the node's count of
@@ -94,9 +95,12 @@ def process_frame(segmenter: Any, msg: Any, camera_info: Any | None, *,
     except Exception as exc:  # one frame the model cannot take never stops the caller
         return failed(f"inference failed on a {width} x {height} frame: {exc}")
     labels = np.ascontiguousarray(result.labels, dtype=np.uint8)
-    fields = R.status_fields(result, intrinsics, camera_note=camera_note, dropped=dropped,
+    # The segmenter's table names the outcomes, failure modes and colours of its model.
+    fields = R.status_fields(result, intrinsics, table=segmenter.table,
+                             camera_note=camera_note, dropped=dropped,
                              latency_ms=since_ms(t_start))
-    overlay = None if overlay_alpha is None else R.overlay_rgb(depth, labels, overlay_alpha)
+    overlay = None if overlay_alpha is None else R.overlay_rgb(depth, labels, overlay_alpha,
+                                                               segmenter.table)
     return FrameOutputs(header, fields, labels, overlay, result, intrinsics, notes=notes)
 
 

@@ -2,7 +2,9 @@
 export-bag``) and the paper's image-level scores of a run's answers against it.
 
 Used by ``outcome_bag`` (offline) and by ``live_bag`` (a live node over DDS), so both score
-with the same presence rule as ``python -m training evaluate``.
+with the same presence rule as ``python -m training evaluate``. The outcomes scored are the
+truth's: a label table given by the caller, else the file's own (``label_table``), else the
+outcomes its frames count pixels of; the answers must cover them.
 """
 
 from __future__ import annotations
@@ -38,29 +40,61 @@ def load_ground_truth(bag: Path) -> dict | None:
     return gt
 
 
+def truth_outcomes(ground_truth: dict, table: L.LabelTable | None = None) -> tuple[str, ...]:
+    """The outcomes ``ground_truth`` is scored on: those of ``table`` (the task the truth was
+    made for, when the caller knows it); else of the file's ``label_table``
+    (``LabelTable.to_dict()``); else the keys of its frames' pixel counts; for a file without
+    frames, the default task's."""
+    if table is not None:
+        return table.outcome_names
+    if "label_table" in ground_truth:
+        try:
+            return L.LabelTable.from_dict(ground_truth["label_table"]).outcome_names
+        except L.LabelTableError as exc:
+            raise BagToolError(f"{ground_truth.get('path', 'ground truth')}: {exc}") from None
+    frames = ground_truth["frames"]
+    return tuple(frames[0]["pixel_counts"]) if frames else L.DEFAULT_TABLE.outcome_names
+
+
+def require_outcomes(ground_truth: dict, names: tuple[str, ...]) -> None:
+    """BagToolError unless a model with the outcomes ``names`` can answer for every outcome of
+    ``ground_truth``. (A model may know more: a small run may not have discovered them all;
+    the score is on the truth's outcomes.)"""
+    unknown = [name for name in truth_outcomes(ground_truth) if name not in names]
+    if unknown:
+        raise BagToolError(f"{ground_truth.get('path', 'the ground truth')} is about the "
+                           f"outcomes {list(truth_outcomes(ground_truth))}, the model knows "
+                           f"{list(names)} and not {unknown}: a model of another task")
+
+
 def score(ground_truth: dict, predicted: dict[int, dict[str, bool] | None],
-          presence_min_pixels: int = L.PRESENCE_MIN_PIXELS) -> dict:
+          presence_min_pixels: int = L.PRESENCE_MIN_PIXELS,
+          table: L.LabelTable | None = None) -> dict:
     """Image-level presence scores of ``predicted`` (stamp ns -> present, None = ERROR frame).
 
     The truth is the presence rule applied to the ground-truth pixel counts with the same
-    ``presence_min_pixels``. A frame with no prediction (ERROR status, or missing from the bag)
-    counts as not all-correct and as 'nothing present' for precision and recall.
+    ``presence_min_pixels``, for the outcomes ``truth_outcomes(ground_truth, table)``. A
+    frame with no prediction (ERROR status, or missing from the bag) counts as not
+    all-correct and as 'nothing present' for precision and recall.
     """
+    names = truth_outcomes(ground_truth, table)
     n = len(ground_truth["frames"])
-    truth = np.zeros((n, len(L.OUTCOME_NAMES)), bool)
+    truth = np.zeros((n, len(names)), bool)
     pred = np.zeros_like(truth)
     correct = np.zeros(n, bool)
     mistakes, n_errors, n_missing = [], 0, 0
     for i, frame in enumerate(ground_truth["frames"]):
         threshold = L.presence_threshold(frame["height"], frame["width"], presence_min_pixels)
-        truth[i] = [frame["pixel_counts"][name] >= threshold for name in L.OUTCOME_NAMES]
+        truth[i] = [count >= threshold for count in _values(frame["pixel_counts"], names,
+                                                             f"frame {i}'s pixel counts")]
         stamp = int(frame["stamp_ns"])
         if stamp not in predicted:
             n_missing += 1
         elif predicted[stamp] is None:
             n_errors += 1
         else:
-            pred[i] = [bool(predicted[stamp][name]) for name in L.OUTCOME_NAMES]
+            pred[i] = [bool(p) for p in _values(predicted[stamp], names,
+                                                 f"the answer for stamp {stamp}")]
             correct[i] = bool(np.all(truth[i] == pred[i]))
         if not correct[i]:
             mistakes.append({"index": frame.get("index", i), "episode": frame.get("episode"),
@@ -68,7 +102,7 @@ def score(ground_truth: dict, predicted: dict[int, dict[str, bool] | None],
     # Missing and ERROR frames predict nothing present, and are never all-correct.
     report: dict[str, Any] = {
         "n_images": n,
-        **L.presence_scores(truth, pred),
+        **L.presence_scores(truth, pred, names),
         "image_all_correct": float(correct.mean()) if n else 0.0,
         "n_errors": n_errors,
         "n_missing": n_missing,
@@ -76,3 +110,12 @@ def score(ground_truth: dict, predicted: dict[int, dict[str, bool] | None],
     }
     report["mistakes"] = mistakes
     return report
+
+
+def _values(by_outcome: dict, names: tuple[str, ...], what: str) -> list:
+    """``by_outcome``'s values for ``names``; BagToolError naming what lacks which outcome."""
+    missing = [name for name in names if name not in by_outcome]
+    if missing:
+        raise BagToolError(f"{what} has no {missing} (it has {sorted(by_outcome)}): the "
+                           "ground truth and the answers are about different outcomes")
+    return [by_outcome[name] for name in names]

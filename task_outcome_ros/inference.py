@@ -4,7 +4,8 @@ Training, evaluation and the ROS node all go through ``preprocess`` (model.py) a
 ``OutcomeSegmenter.segment`` / ``predict_labels`` here, so what is measured offline is what
 runs on the robot. The network runs at the checkpoint's working size; its argmax labels are
 cleaned of small outcome fragments (fragments.py), resized back to the input size (nearest)
-and the presence rule of labels.py is applied to the full-size label image.
+and the presence rule of labels.py is applied to the full-size label image. Class ids and
+outcome names are the checkpoint's label table (``OutcomeSegmenter.table``).
 """
 
 from __future__ import annotations
@@ -28,11 +29,10 @@ from task_outcome_ros.floor import FloorTracker
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS, absorb_fragments, fragment_threshold
 from task_outcome_ros.labels import (
     BACKGROUND,
-    CLASS_NAMES,
-    CONTAINER,
-    OUTCOME_IDS,
-    OUTCOME_NAMES,
+    DEFAULT_TABLE,
+    FIXTURE,
     PRESENCE_MIN_PIXELS,
+    LabelTable,
     outcome_pixel_counts,
     presence_from_counts,
     presence_threshold,
@@ -66,8 +66,8 @@ class DetectedObject:
 
 @dataclass
 class OutcomeResult:
-    labels: np.ndarray                  # uint8 H x W, same size as the input, labels.py ids
-    present: dict[str, bool]            # per outcome, labels.outcomes_present rule
+    labels: np.ndarray                  # uint8 H x W, same size as the input, the table's ids
+    present: dict[str, bool]            # per table outcome, labels.outcomes_present rule
     pixel_counts: dict[str, int]
     objects: dict[str, list[DetectedObject]]  # components >= the presence threshold
     inference_ms: float
@@ -132,14 +132,15 @@ def predict_labels(model: nn.Module, batch: torch.Tensor) -> torch.Tensor:
 
 
 def count_objects(labels: np.ndarray, outcome_id: int, min_pixels: int,
-                  depth_m: np.ndarray | None = None) -> list[DetectedObject]:
+                  depth_m: np.ndarray | None = None, *,
+                  table: LabelTable = DEFAULT_TABLE) -> list[DetectedObject]:
     """Connected components of ``outcome_id`` with at least ``min_pixels`` pixels.
 
-    ``depth_m`` (same size, NaN invalid) gives each object's median depth. Components are
-    sorted by size, largest first.
+    ``depth_m`` (same size, NaN invalid) gives each object's median depth; ``table`` names
+    the objects' outcome. Components are sorted by size, largest first.
     """
-    if not 0 <= outcome_id < len(CLASS_NAMES):
-        raise ValueError(f"outcome_id must be a class id in [0, {len(CLASS_NAMES)}), "
+    if not 0 <= outcome_id < table.num_classes:
+        raise ValueError(f"outcome_id must be a class id in [0, {table.num_classes}), "
                          f"got {outcome_id}")
     labels = np.asarray(labels)
     if depth_m is not None and depth_m.shape != labels.shape[:2]:
@@ -167,7 +168,7 @@ def count_objects(labels: np.ndarray, outcome_id: int, min_pixels: int,
             values = values[np.isfinite(values) & (values > 0)]
             median = float(np.median(values)) if values.size else None
         found.append(DetectedObject(
-            outcome=CLASS_NAMES[outcome_id], pixel_count=area,
+            outcome=table.classes[outcome_id], pixel_count=area,
             centroid_px=(float(centroids[k, 0]) + x0, float(centroids[k, 1]) + y0),
             median_depth_m=median))
     found.sort(key=lambda o: -o.pixel_count)
@@ -197,6 +198,7 @@ class OutcomeSegmenter:
     another outcome's object take that outcome (fragments.py). ``reuse_floor_fit``: frames
     come from one stream (the node, a bag), so keep the support plane while it fits
     (``floor.FloorTracker``); off for datasets, whose every image has its own camera.
+    ``table``: the checkpoint's label table, which names every class id and outcome.
     """
 
     def __init__(self, model_path: str | Path | None = None, device: str = "cpu",
@@ -215,6 +217,7 @@ class OutcomeSegmenter:
             torch.set_num_threads(int(num_threads))
         self.device = resolve_device(device)
         self.checkpoint: LoadedCheckpoint = load(path, device=str(self.device))
+        self.table: LabelTable = self.checkpoint.label_table
         self.model = self.checkpoint.model
         self.input_size = self.checkpoint.input_size
         self.normalisation = self.checkpoint.normalisation
@@ -267,12 +270,29 @@ class OutcomeSegmenter:
                 problem = (f"ONNX file {onnx_path} was not exported from {self.checkpoint.path}"
                            " (checkpoint hash differs); re-run "
                            "`python -m task_outcome_ros.onnx_export`")
+            if problem is None:
+                problem = self._onnx_table_problem(onnx_path, meta)
         if problem is not None:
             if backend == "onnx":
                 raise CheckpointError(f"backend 'onnx' unavailable: {problem}")
             return "torch", problem
         self._session = session
         return "onnx", f"{onnx_path} matches the checkpoint"
+
+    def _onnx_table_problem(self, onnx_path: Path, meta: dict[str, str]) -> str | None:
+        """Why the ONNX file's classes are not the checkpoint's (None: they are). Exports made
+        before tables travelled as data record none: they are the default task's."""
+        from task_outcome_ros.onnx_export import metadata_label_table
+
+        try:
+            onnx_table = metadata_label_table(meta)
+        except ValueError as exc:
+            return f"ONNX file {onnx_path} has an unusable label table: {exc}"
+        if onnx_table != self.table:
+            return (f"ONNX file {onnx_path} names its classes {list(onnx_table.classes)}, the "
+                    f"checkpoint {list(self.table.classes)}; re-run "
+                    "`python -m task_outcome_ros.onnx_export`")
+        return None
 
     def _predict_small(self, x: np.ndarray) -> np.ndarray:
         """(C, h, w) network input -> (h, w) uint8 labels at the working size."""
@@ -327,7 +347,7 @@ class OutcomeSegmenter:
         heights = None
         if "height_scale_m" in norm:
             heights = np.where(valid, x[2] * norm["height_scale_m"], np.nan)
-        stats = frame_stats(metres, small, heights, CONTAINER)
+        stats = frame_stats(metres, small, heights, FIXTURE)
         # The valid share of the full-resolution frame, not of the working size.
         return FrameStats(float(np.isfinite(depth).mean()), stats.median_depth_m,
                           stats.support_fraction, stats.fixture_fraction)
@@ -351,7 +371,8 @@ class OutcomeSegmenter:
             labels = np.zeros((h, w), np.uint8)
         else:
             small = absorb_fragments(small, fragment_threshold(*small.shape,
-                                                               self.fragment_max_pixels))
+                                                               self.fragment_max_pixels),
+                                     self.table)
             labels = small if small.shape == (h, w) else cv2.resize(
                 small, (w, h), interpolation=cv2.INTER_NEAREST)
             # No measurement, no claim: the training labels of pixels without depth are
@@ -359,10 +380,10 @@ class OutcomeSegmenter:
             # pixel counts comparable with the presence rule's truth (valid pixels only).
             labels[~np.isfinite(depth)] = BACKGROUND
         threshold = presence_threshold(h, w, self.presence_min_pixels)
-        counts = outcome_pixel_counts(labels)
+        counts = outcome_pixel_counts(labels, self.table)
         present = presence_from_counts(counts, threshold)  # one pass over the image, not two
-        objects = {name: count_objects(labels, OUTCOME_IDS[name], threshold, depth)
-                   if present[name] else [] for name in OUTCOME_NAMES}
+        objects = {name: count_objects(labels, class_id, threshold, depth, table=self.table)
+                   if present[name] else [] for name, class_id in self.table.outcome_ids.items()}
         return OutcomeResult(labels=labels, present=present, pixel_counts=counts,
                              objects=objects, inference_ms=0.0)
 

@@ -26,7 +26,6 @@ from typing import Any
 from task_outcome_ros import bag_io as B
 from task_outcome_ros import outcome_report as R
 from task_outcome_ros.ground_truth import load_ground_truth, score
-from task_outcome_ros.labels import OUTCOME_NAMES
 from task_outcome_ros.topics import LABELS_TOPIC, OVERLAY_TOPIC, STATUS_TOPIC
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
@@ -137,12 +136,16 @@ def write_output_bag(path: Path, received: dict, storage: str = "mcap") -> None:
 
 
 def status_present(msg) -> dict[str, bool] | None:
-    """Outcomes present according to a DiagnosticArray from the node; None for ERROR."""
+    """Outcomes present according to a DiagnosticArray from the node; None for ERROR. The
+    outcomes are the ones the status names (its model's label table), whatever the task."""
     status = msg.status[0]
-    if status.level == R.ERROR:
+    # rclpy gives the byte field as bytes (b'\x02'), rosbags as an int.
+    level = status.level[0] if isinstance(status.level, bytes) else int(status.level)
+    if level == R.ERROR:
         return None
     values = {kv.key: kv.value for kv in status.values}
-    return {name: values.get(f"{name}.present", "false") == "true" for name in OUTCOME_NAMES}
+    return {name: values.get(f"{name}.present", "false") == "true"
+            for name in R.status_outcomes(values).names}
 
 
 @dataclass

@@ -1,8 +1,9 @@
 """The FCN and the one preprocessing path from depth metres to network input.
 
 The network is a compact U-Net: ``levels`` stride-2 stages, skip connections, and a 1x1 head
-with one logit per class of ``labels.py``. It takes any input size (padded to the stride and
-cropped back), but it is trained and run at a fixed working size stored in the checkpoint.
+with one logit per class of the task's label table (``labels.LabelTable``, which the checkpoint
+carries). It takes any input size (padded to the stride and cropped back), but it is trained
+and run at a fixed working size stored in the checkpoint.
 
 Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every checkpoint):
 
@@ -41,7 +42,7 @@ from task_outcome_ros.floor import (
     FloorTracker,
     height_above_floor,
 )
-from task_outcome_ros.labels import NUM_CLASSES
+from task_outcome_ros.labels import DEFAULT_TABLE
 
 IN_CHANNELS = 3
 # Cameras sit 1.6-2.4 m from the container (docs/interface.md §4): 2 m maps to 0, a metre to 1.
@@ -57,8 +58,8 @@ _FLOOR_FITS = (LEGACY_FLOOR_FIT, FLOOR_FIT)
 INTRINSICS_FROM_CAMERA_INFO = "camera_info"
 DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution
 DEFAULT_MODEL_ARGS: dict[str, Any] = {
-    "in_channels": IN_CHANNELS, "num_classes": NUM_CLASSES, "base_width": 8, "levels": 5,
-    "decoder_convs": 1, "max_width": 128}
+    "in_channels": IN_CHANNELS, "num_classes": DEFAULT_TABLE.num_classes, "base_width": 8,
+    "levels": 5, "decoder_convs": 1, "max_width": 128}
 
 
 def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
@@ -228,8 +229,9 @@ class OutcomeFCN(nn.Module):
     (zero = invalid) to a multiple of 2**levels and the logits are cropped back.
     """
 
-    def __init__(self, in_channels: int = IN_CHANNELS, num_classes: int = NUM_CLASSES,
-                 base_width: int = 8, levels: int = 4, decoder_convs: int = 1,
+    def __init__(self, in_channels: int = IN_CHANNELS,
+                 num_classes: int = DEFAULT_TABLE.num_classes, base_width: int = 8,
+                 levels: int = 4, decoder_convs: int = 1,
                  max_width: int | None = None) -> None:
         super().__init__()
         if not (1 <= levels <= 6 and 2 <= base_width <= 256 and 1 <= decoder_convs <= 2

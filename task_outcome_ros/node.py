@@ -189,7 +189,8 @@ class OutcomeNode(Node):
                    "nominal camera until it arrives)" if self._segmenter.uses_intrinsics
                    else "heights from the nominal camera")
         self.get_logger().info(
-            f"ready: model {self._model_desc}, device {self._params['device']}, "
+            f"ready: model {self._model_desc} ({_outcomes_desc(self._segmenter.table)}), "
+            f"device {self._params['device']}, "
             f"backend {self._params['backend']}, qos {self._params['qos']}, {heights}; "
             f"listening on {self.resolve_topic_name('depth/image_raw')}")
 
@@ -362,8 +363,9 @@ class OutcomeNode(Node):
         if frame.overlay is not None:
             self._pub_overlay.publish(_image_msg(msg.header, frame.overlay, "rgb8"))
         if self._params["publish_markers"] and self._pub_markers.get_subscription_count() > 0:
-            centroids = R.object_centroids(frame.result, frame.intrinsics)
-            self._pub_markers.publish(_markers(msg.header, centroids))
+            table = self._segmenter.table
+            centroids = R.object_centroids(frame.result, frame.intrinsics, table)
+            self._pub_markers.publish(_markers(msg.header, centroids, table))
 
     # publishing ------------------------------------------------------------------------------
     def _publish_status(self, header: Header, fields: R.StatusFields) -> None:
@@ -412,11 +414,12 @@ def _image_msg(header: Header, pixels: np.ndarray, encoding: str) -> Image:
                  is_bigendian=0, step=width * channels, data=data)
 
 
-def _markers(header: Header, centroids: list[R.Centroid]) -> MarkerArray:
-    """DELETEALL (clears the previous frame's spheres) then one sphere per 3-D centroid."""
+def _markers(header: Header, centroids: list[R.Centroid], table: L.LabelTable) -> MarkerArray:
+    """DELETEALL (clears the previous frame's spheres) then one sphere per 3-D centroid, in
+    its outcome's colour of ``table`` (the overlay's)."""
     markers = [Marker(header=header, action=Marker.DELETEALL)]
     for name, k, (x, y, z) in centroids:
-        r, g, b = L.CLASS_COLOURS[L.OUTCOME_IDS[name]]
+        r, g, b = table.colours[table.outcome_ids[name]]
         m = Marker(header=header, ns=name, id=k, type=Marker.SPHERE, action=Marker.ADD,
                    color=ColorRGBA(r=r / 255.0, g=g / 255.0, b=b / 255.0, a=0.8))
         m.pose.position.x, m.pose.position.y, m.pose.position.z = x, y, z
@@ -424,6 +427,12 @@ def _markers(header: Header, centroids: list[R.Centroid]) -> MarkerArray:
         m.scale.x = m.scale.y = m.scale.z = MARKER_DIAMETER_M
         markers.append(m)
     return MarkerArray(markers=markers)
+
+
+def _outcomes_desc(table: L.LabelTable) -> str:
+    """E.g. 'outcomes success, fell_outside (failure), stuck_on_rim (failure)'."""
+    return "outcomes " + ", ".join(
+        f"{name} (failure)" if name in table.failures else name for name in table.outcome_names)
 
 
 def _exc_reason(exc: Exception) -> str:

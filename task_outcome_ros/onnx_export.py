@@ -4,7 +4,9 @@ The graph takes the fixed working size of the checkpoint, ``input`` (N, C, h, w)
 (C = the model's ``in_channels``) and
 gives ``logits`` (N, num_classes, h, w). Its metadata records the SHA-256 of the source
 checkpoint, so ``OutcomeSegmenter(backend='auto')`` uses the ONNX file only when it was made
-from exactly that checkpoint.
+from exactly that checkpoint, and the label table (``LabelTable.to_dict()`` as JSON) that
+names the logits' channels; exports from before tables travelled as data have none and are
+the default task's.
 
     python -m task_outcome_ros.onnx_export task_outcome_ros/models/outcome_fcn.pt
 """
@@ -12,6 +14,7 @@ from exactly that checkpoint.
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import warnings
 from pathlib import Path
@@ -21,10 +24,12 @@ import numpy as np
 import torch
 
 from task_outcome_ros.checkpoint import atomic_write_bytes, load
+from task_outcome_ros.labels import DEFAULT_TABLE, LabelTable
 
 META_SOURCE_SHA256 = "source_checkpoint_sha256"
 META_INPUT_SIZE = "input_size"
 META_FORMAT = "format"
+META_LABEL_TABLE = "label_table"
 ONNX_FORMAT = "task_outcome_ros.onnx/1"
 DEFAULT_OPSET = 17
 
@@ -44,6 +49,19 @@ def read_metadata(onnx_path: str | Path) -> dict[str, str]:
 def session_metadata(session: Any) -> dict[str, str]:
     """The custom metadata of an onnxruntime InferenceSession's model."""
     return dict(session.get_modelmeta().custom_metadata_map)
+
+
+def metadata_label_table(metadata: dict[str, str]) -> LabelTable:
+    """The label table an export records; DEFAULT_TABLE for an export without one (made
+    before tables travelled as data, so from a default-task checkpoint). LabelTableError
+    (a ValueError) for a malformed one."""
+    text = metadata.get(META_LABEL_TABLE)
+    if text is None:
+        return DEFAULT_TABLE
+    try:
+        return LabelTable.from_dict(json.loads(text))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"ONNX metadata '{META_LABEL_TABLE}' is not JSON: {exc}") from None
 
 
 def _cpu_session(model: str | bytes, options: Any = None) -> Any:
@@ -74,8 +92,9 @@ def export_onnx(checkpoint_path: str | Path, onnx_path: str | Path | None = None
                           dynamic_axes={"input": {0: "batch"}, "logits": {0: "batch"}})
     buf.seek(0)
     proto = onnx.load_model_from_string(buf.read())
+    table_json = json.dumps(ckpt.label_table.to_dict(), separators=(",", ":"))
     for key, value in ((META_SOURCE_SHA256, ckpt.sha256), (META_INPUT_SIZE, f"{w}x{h}"),
-                       (META_FORMAT, ONNX_FORMAT)):
+                       (META_FORMAT, ONNX_FORMAT), (META_LABEL_TABLE, table_json)):
         entry = proto.metadata_props.add()
         entry.key, entry.value = key, value
     onnx.checker.check_model(proto)

@@ -25,6 +25,7 @@ pytest.importorskip("torch", reason="torch is not installed")
 pytest.importorskip("rclpy", reason="ROS 2 rclpy is not installed (node_helpers and replay)")
 
 import node_helpers as nh  # noqa: E402
+from model_helpers import SHELF_TABLE  # noqa: E402
 
 from task_outcome_ros import bag_io, ground_truth  # noqa: E402
 from task_outcome_ros import bag_tools as B  # noqa: E402
@@ -86,22 +87,25 @@ def mono8(msg) -> np.ndarray:
     return np.asarray(msg.data, np.uint8).reshape(msg.height, msg.step)[:, :msg.width]
 
 
-def check_status(status_array, labels: np.ndarray) -> dict[str, str]:
-    """One task_outcome status whose level, message and values agree with ``labels``."""
+def check_status(status_array, labels: np.ndarray,
+                 table: L.LabelTable = L.DEFAULT_TABLE) -> dict[str, str]:
+    """One task_outcome status whose level, message and values agree with ``labels`` in the
+    classes of ``table`` (the model's), which the status carries too."""
     (status,) = status_array.status
     assert status.name == R.STATUS_NAME and status.hardware_id == status_array.header.frame_id
     values = {kv.key: kv.value for kv in status.values}
+    assert values["label_table"] == R.label_table_value(table)
     h, w = labels.shape
     threshold = L.presence_threshold(h, w)
     present = {}
-    for name in L.OUTCOME_NAMES:
-        count = int(np.count_nonzero(labels == L.OUTCOME_IDS[name]))
+    for name, class_id in table.outcome_ids.items():
+        count = int(np.count_nonzero(labels == class_id))
         assert int(values[f"{name}.pixels"]) == count
         present[name] = values[f"{name}.present"] == "true"
         assert present[name] == (count >= threshold)
     names = sorted(n for n, p in present.items() if p)
     assert status.message == (",".join(names) or "none")
-    failure = any(present[n] for n in L.FAILURE_OUTCOMES)
+    failure = any(present[n] for n in table.failures)
     assert status.level == (R.WARN if failure else R.OK)
     assert float(values["inference_ms"]) >= 0 and int(values["dropped_frames"]) == 0
     return values
@@ -125,7 +129,9 @@ def test_export_bag_topics_stamps_camera_info_and_ground_truth(work, name):
     images = topics[f"{namespace}/depth/image_raw"]
     infos = topics[f"{namespace}/depth/camera_info"]
     assert len(images) == len(infos) == N_FRAMES
-    manifest = load_manifest(work / "run")["images"][:N_FRAMES]
+    run = load_manifest(work / "run")
+    manifest = run["images"][:N_FRAMES]
+    run_table = L.LabelTable.from_dict(run["label_table"])  # what the run discovered
     truth = json.loads((bag / ground_truth.GROUND_TRUTH_FILE).read_text())
     assert truth["n_frames"] == N_FRAMES and truth["encoding"] == encoding
     for i, ((t_img, img), (t_info, info), im, gt) in enumerate(
@@ -146,7 +152,7 @@ def test_export_bag_topics_stamps_camera_info_and_ground_truth(work, name):
                                             cam["cy"], 0, 0, 0, 1, 0])
         assert info.distortion_model == "plumb_bob" and not np.any(info.d)
         assert gt["episode"] == im["episode"] and gt["present"] == im["present"]
-        assert gt["pixel_counts"] == L.outcome_pixel_counts(labels)
+        assert gt["pixel_counts"] == L.outcome_pixel_counts(labels, run_table)
         assert (bag / gt["labels_png"]).is_file()
 
 
@@ -217,7 +223,7 @@ def test_outcome_bag_outputs_match_the_input_frames(work, processed, name):
         assert (overlay.encoding, overlay.height, overlay.width, overlay.step) == \
             ("rgb8", depth.height, depth.width, 3 * depth.width)
         labels = mono8(lab)
-        assert set(np.unique(labels)) <= set(range(L.NUM_CLASSES))
+        assert set(np.unique(labels)) <= set(range(L.DEFAULT_TABLE.num_classes))
         check_status(status, labels)
 
     summary = json.loads((out_bag / B.SUMMARY_FILE).read_text())
@@ -230,12 +236,15 @@ def test_outcome_bag_outputs_match_the_input_frames(work, processed, name):
     for frame, (_, status) in zip(truth["frames"], outputs[1]):
         values = {kv.key: kv.value for kv in status.status[0].values}
         threshold = L.presence_threshold(frame["height"], frame["width"])
+        # Scored on the outcomes the run discovered (a small run may not find them all).
         right.append(all((values[f"{n}.present"] == "true")
-                         == (frame["pixel_counts"][n] >= threshold) for n in L.OUTCOME_NAMES))
+                         == (frame["pixel_counts"][n] >= threshold)
+                         for n in ground_truth.truth_outcomes(truth)))
     assert score["n_images"] == N_FRAMES
     assert score["image_all_correct"] == pytest.approx(sum(right) / N_FRAMES)
     assert len(score["mistakes"]) == right.count(False)
-    assert set(score["presence_recall"]) == set(L.OUTCOME_NAMES)
+    assert set(score["presence_recall"]) == set(ground_truth.truth_outcomes(truth))
+    assert set(score["presence_recall"]) <= set(L.DEFAULT_TABLE.outcome_names)
 
 
 def test_outcome_bag_no_overlay_no_copy_and_bad_frames(work, tmp_path):
@@ -284,7 +293,7 @@ def test_scoring_counts_missing_and_error_frames_as_wrong():
                       "pixel_counts": {"success": c, "fell_outside": 0, "stuck_on_rim": 0}}
                      for s, c in ((1, 500), (2, 0), (3, 500), (4, 0))]}
     yes = {"success": True, "fell_outside": False, "stuck_on_rim": False}
-    no = dict.fromkeys(L.OUTCOME_NAMES, False)
+    no = dict.fromkeys(L.DEFAULT_TABLE.outcome_names, False)
     report = ground_truth.score(gt, {1: yes, 2: yes, 3: None})
     assert report["n_images"] == 4 and report["image_all_correct"] == 0.25
     assert (report["n_errors"], report["n_missing"]) == (1, 1)
@@ -294,6 +303,88 @@ def test_scoring_counts_missing_and_error_frames_as_wrong():
     # the truth follows the presence threshold asked for
     assert ground_truth.score(gt, {1: no, 2: no, 3: no, 4: no}, presence_min_pixels=600)[
         "image_all_correct"] == 1.0
+
+
+def _flat_depth_bag(path: Path, n: int = 2) -> list[int]:
+    """A bag of ``n`` flat 64 x 48 depth frames (2 m) on /depth/image_raw; their stamps."""
+    writer = bag_io.open_writer(path, "mcap")
+    conn = writer.add_connection("/depth/image_raw", bag_io.IMAGE, typestore=bag_io.typestore())
+    stamps = [1_000_000_000 * (i + 1) for i in range(n)]
+    for stamp in stamps:
+        msg = bag_io.depth_image_message(bag_io.make_header(stamp, "cam"),
+                                         np.full((48, 64), 2.0, np.float32), "32FC1")
+        writer.write(conn, stamp, bag_io.serialize(msg, bag_io.IMAGE))
+    writer.close()
+    return stamps
+
+
+def _write_truth(bag: Path, stamps: list[int], pixel_counts: dict[str, int]) -> None:
+    frames = [{"stamp_ns": s, "width": 64, "height": 48, "pixel_counts": pixel_counts}
+              for s in stamps]
+    (bag / ground_truth.GROUND_TRUTH_FILE).write_text(json.dumps({"frames": frames}))
+
+
+def test_outcome_bag_with_a_model_of_another_task(tmp_path):
+    """A shelf model (fell_off everywhere): the statuses, the summary and the score are in its
+    outcomes; a bag whose ground truth is the default task's is refused before any frame."""
+    fell_off = SHELF_TABLE.outcome_ids["fell_off"]
+    shelf = str(nh.make_checkpoint(tmp_path / "shelf.pt", favour=fell_off, table=SHELF_TABLE))
+    stamps = _flat_depth_bag(tmp_path / "in")
+    summary = B.process_bag(tmp_path / "in", tmp_path / "out", model=shelf, progress=False)
+    assert summary["present_counts"] == {"on_shelf": 0, "fell_off": 2,
+                                         "hanging_over_edge": 0, "tipped": 0}
+    assert summary["levels"] == {"OK": 0, "WARN": 2, "ERROR": 0}
+    topics = read_bag(tmp_path / "out")
+    for (_, labels), (_, status) in zip(topics["/outcome/labels"], topics["/outcome/status"]):
+        assert (mono8(labels) == fell_off).all()
+        check_status(status, mono8(labels), SHELF_TABLE)
+        assert status.status[0].message == "fell_off"
+
+    _write_truth(tmp_path / "in", stamps, {"success": 0, "fell_outside": 3072,
+                                           "stuck_on_rim": 0})
+    with pytest.raises(B.BagToolError, match="a model of another task"):
+        B.process_bag(tmp_path / "in", tmp_path / "out_default_truth", model=shelf,
+                      progress=False)
+    assert not (tmp_path / "out_default_truth").exists()
+
+    _write_truth(tmp_path / "in", stamps, {"on_shelf": 0, "fell_off": 3072,
+                                           "hanging_over_edge": 0, "tipped": 0})
+    summary = B.process_bag(tmp_path / "in", tmp_path / "out_scored", model=shelf,
+                            progress=False)
+    assert summary["score"]["image_all_correct"] == 1.0
+    assert list(summary["score"]["presence_recall"]) == list(SHELF_TABLE.outcome_names)
+
+
+def test_scoring_uses_the_ground_truths_outcomes_and_names_a_mismatch():
+    gt = {"frames": [{"stamp_ns": 1, "width": 640, "height": 480,
+                      "pixel_counts": {"on_shelf": 0, "fell_off": 0,
+                                       "hanging_over_edge": 500, "tipped": 0}}]}
+    assert ground_truth.truth_outcomes(gt) == SHELF_TABLE.outcome_names
+    # A table in the file wins over the pixel counts' keys.
+    assert ground_truth.truth_outcomes({**gt, "label_table": L.DEFAULT_TABLE.to_dict()}) \
+        == L.DEFAULT_TABLE.outcome_names
+    answer = {**dict.fromkeys(SHELF_TABLE.outcome_names, False), "hanging_over_edge": True}
+    report = ground_truth.score(gt, {1: answer})
+    assert report["image_all_correct"] == 1.0
+    assert report["presence_recall"]["hanging_over_edge"] == 1.0
+    with pytest.raises(B.BagToolError, match="different outcomes"):
+        ground_truth.score(gt, {1: dict.fromkeys(L.DEFAULT_TABLE.outcome_names, False)})
+
+
+def test_live_status_outcomes_come_from_the_status():
+    """live_bag reads which outcomes a node's status is about from the status itself, and an
+    ERROR status (level bytes, as rclpy gives it) is no answer."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    from task_outcome_ros.live_bag import status_present
+
+    present = {**dict.fromkeys(SHELF_TABLE.outcome_names, False), "tipped": True}
+    values = [KeyValue(key="label_table", value=R.label_table_value(SHELF_TABLE))] + [
+        KeyValue(key=f"{n}.present", value=str(p).lower()) for n, p in present.items()]
+    ok = DiagnosticArray(status=[DiagnosticStatus(level=bytes([R.WARN]), values=values)])
+    assert status_present(ok) == present
+    error = DiagnosticArray(status=[DiagnosticStatus(level=bytes([R.ERROR]), message="x")])
+    assert status_present(error) is None
 
 
 # --- outcome_replay -> outcome_node ----------------------------------------------------------

@@ -64,3 +64,59 @@ MALFORMED = ["null", "42", json.dumps({"schema": "task_outcome_ros/check/1", "st
 def test_malformed_replies_are_check_errors_not_crashes(message):
     with pytest.raises(CheckError):
         parse(True, message)
+
+
+def _shelf_result(present: dict[str, bool]):
+    """An OutcomeResult of a shelf model: each present outcome one 100-pixel object."""
+    import numpy as np
+
+    from task_outcome_ros.inference import DetectedObject, OutcomeResult
+
+    objects = {name: [DetectedObject(name, 100, (3.0, 4.0), 1.5)] if there else []
+               for name, there in present.items()}
+    return OutcomeResult(labels=np.zeros((48, 64), np.uint8), present=present,
+                         pixel_counts={n: 100 * p for n, p in present.items()},
+                         objects=objects, inference_ms=1.0)
+
+
+def test_another_tasks_status_and_reply_use_its_outcomes():
+    """A shelf model's status names its outcomes and carries its table; the reply reads both
+    from the status: a failure mode of that table is a failure, its success-like one is not."""
+    from model_helpers import SHELF_TABLE
+
+    from task_outcome_ros.outcome_report import label_table_value, status_fields
+
+    none = dict.fromkeys(SHELF_TABLE.outcome_names, False)
+    hanging = status_fields(_shelf_result({**none, "hanging_over_edge": True}),
+                            table=SHELF_TABLE)
+    values = dict(hanging.values)
+    assert hanging.level == WARN and hanging.message == "hanging_over_edge"
+    assert values["label_table"] == label_table_value(SHELF_TABLE)
+    assert json.loads(values["label_table"]) == SHELF_TABLE.to_dict()["classes"]
+    assert values["hanging_over_edge.0.centroid_px"] == "3.0,4.0"
+    assert not any(key.startswith(("success.", "fell_outside.")) for key in values)
+    answer = frame_answer((1, 2), "cam", hanging, [], False)
+    result = parse(answer.success, answer.message)
+    assert not result.success and result.outcomes == ("hanging_over_edge",)
+    assert [f.outcome for f in result.failures] == ["hanging_over_edge"]
+    assert json.loads(answer.message)["reason"] == "failure: hanging_over_edge"
+
+    on_shelf = status_fields(_shelf_result({**none, "on_shelf": True}), table=SHELF_TABLE)
+    assert on_shelf.level == OK
+    assert frame_answer((1, 2), "cam", on_shelf, [], False).success
+
+
+def test_status_outcomes_fall_back_to_the_keys_then_the_default_task():
+    from model_helpers import SHELF_TABLE
+
+    from task_outcome_ros.labels import DEFAULT_TABLE
+    from task_outcome_ros.outcome_report import label_table_value, status_outcomes
+
+    shelf = status_outcomes({"label_table": label_table_value(SHELF_TABLE)})
+    assert shelf == (SHELF_TABLE.outcome_names, SHELF_TABLE.failures)
+    # A status of an older node (no label_table value), or an unreadable one: the keys.
+    for extra in ({}, {"label_table": "[{not json"}):
+        older = status_outcomes({**extra, "success.present": "true",
+                                 "fell_outside.present": "false", "envelope": "ok"})
+        assert older == (("success", "fell_outside"), ("fell_outside",))
+    assert status_outcomes({}) == (DEFAULT_TABLE.outcome_names, DEFAULT_TABLE.failures)

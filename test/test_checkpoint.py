@@ -8,11 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from model_helpers import SHELF_TABLE
 from test_floor import TWO_CHANNEL_NORMALISATION, _container_floor_scene
 
 from task_outcome_ros import checkpoint
 from task_outcome_ros.checkpoint import CheckpointError
-from task_outcome_ros.labels import label_table
+from task_outcome_ros.labels import DEFAULT_TABLE, LEGACY_DEFAULT_IDS
 from task_outcome_ros.model import DEFAULT_NORMALISATION, IN_CHANNELS, OutcomeFCN
 
 pytestmark = pytest.mark.unit
@@ -30,7 +31,7 @@ class _TrainConfig:
 
 def _save(path: Path, **overrides) -> OutcomeFCN:
     torch.manual_seed(0)
-    model = OutcomeFCN(**ARGS)
+    model = OutcomeFCN(**overrides.get("model_args", ARGS))
     # Non-trivial BN statistics, so a lost buffer would change the outputs.
     model.train()
     with torch.no_grad():
@@ -60,7 +61,7 @@ def test_round_trip_rebuilds_identical_model(tmp_path: Path) -> None:
     assert loaded.model_args == ARGS
     assert loaded.input_size == (32, 24)
     assert loaded.normalisation == DEFAULT_NORMALISATION
-    assert loaded.label_table == label_table()
+    assert loaded.label_table == DEFAULT_TABLE
     assert loaded.train_config == {"lr": 1e-3, "sizes": [160, 120], "out": "/tmp/run"}
     assert loaded.metrics == {"miou": 0.5, "epoch": 3}
     assert loaded.extra == {"note": "x"} and loaded.optimizer_state is not None
@@ -115,13 +116,69 @@ def test_pickled_code_is_refused(tmp_path: Path) -> None:
     _assert_error(path, "cannot be read")
 
 
-def test_label_table_mismatch(tmp_path: Path) -> None:
+def test_a_table_of_another_task_round_trips(tmp_path: Path) -> None:
+    """A shelf model (6 classes): the table comes back as saved and names the outputs."""
+    from task_outcome_ros.inference import OutcomeSegmenter
+
+    path = tmp_path / "shelf.pt"
+    _save(path, model_args={**ARGS, "num_classes": 6}, label_table=SHELF_TABLE)
+    loaded = checkpoint.load(path)
+    assert loaded.label_table == SHELF_TABLE
+    assert loaded.label_table.failures == ("fell_off", "hanging_over_edge", "tipped")
+    assert loaded.label_table.fixture_name == "shelf"
+    assert torch.load(path, weights_only=True)["label_table"] == SHELF_TABLE.to_dict()
+    segmenter = OutcomeSegmenter(path, backend="torch")
+    result = segmenter.segment(np.full((48, 64), 2.0, np.float32))
+    assert segmenter.table == SHELF_TABLE
+    assert tuple(result.present) == ("on_shelf", "fell_off", "hanging_over_edge", "tipped")
+    assert int(result.labels.max()) < 6
+
+
+def test_legacy_name_id_table_loads_as_the_default_table(tmp_path: Path) -> None:
+    """Checkpoints from before tables travelled as data hold {name: id} of the default task."""
     path = tmp_path / "m.pt"
     _save(path)
-    table = label_table()
+    _rewrite(path, label_table=dict(LEGACY_DEFAULT_IDS))
+    assert checkpoint.load(path).label_table is DEFAULT_TABLE
+
+
+def _swapped_legacy_ids() -> dict[str, int]:
+    table = dict(LEGACY_DEFAULT_IDS)
     table["success"], table["fell_outside"] = table["fell_outside"], table["success"]
+    return table
+
+
+@pytest.mark.parametrize("table", [
+    _swapped_legacy_ids(),                                     # {name: id}, not the default's
+    {"classes": "background,container"},
+    {"classes": [{"id": 0, "name": "background"}]},            # no colour
+    {"classes": [{"id": i, "name": "x", "colour": [0, 0, 0]} for i in range(3)]},  # same names
+    {"classes": [{"id": i + 1, "name": f"c{i}", "colour": [0, 0, 0]} for i in range(3)]},
+], ids=["swapped_legacy", "not_rows", "no_colour", "same_names", "ids_from_1"])
+def test_malformed_label_table(tmp_path: Path, table) -> None:
+    path = tmp_path / "m.pt"
+    _save(path)
     _rewrite(path, label_table=table)
     _assert_error(path, "label table")
+
+
+def test_table_and_model_outputs_must_agree(tmp_path: Path) -> None:
+    """One output channel per class: saving or loading a mismatch is refused, naming both."""
+    with pytest.raises(ValueError, match="num_classes=5 but the label table has 6 classes"):
+        _save(tmp_path / "m.pt", label_table=SHELF_TABLE)
+    with pytest.raises(ValueError, match="weights have 5 outputs"):   # model_args lie
+        checkpoint.save(tmp_path / "m.pt", OutcomeFCN(**ARGS),
+                        model_args={**ARGS, "num_classes": 6}, input_size=(32, 24),
+                        normalisation=DEFAULT_NORMALISATION, train_config={}, metrics={},
+                        label_table=SHELF_TABLE)
+    assert not any(tmp_path.iterdir())
+    path = tmp_path / "m.pt"
+    _save(path)
+    _rewrite(path, label_table=SHELF_TABLE.to_dict())         # 5 outputs, 6 classes
+    _assert_error(path, "num_classes=5", "6 classes")
+    _save(path)
+    _rewrite(path, label_table=SHELF_TABLE.to_dict(), model_args={**ARGS, "num_classes": 6})
+    _assert_error(path, "classifier's weights have 5 outputs", "6 classes")
 
 
 @pytest.mark.parametrize("version", [2, 0, "1", None])

@@ -145,7 +145,7 @@ def test_defaults_are_the_contract_scene_and_camera():
     assert (s.min_objects, s.max_objects) == (1, 4)
     assert s.shapes == {"box": 1.0} and s.table_size is None
     assert s.object_edge == (0.08, 0.30)
-    assert s.release_above_rim == (1.5, 1.5)
+    assert s.release_height == (1.5, 1.5)
     assert s.inner_size_x[0] / 2 + s.release_margin == pytest.approx(0.6)
     assert s.release_frame == "world"
     c = CameraConfig()
@@ -174,7 +174,7 @@ def test_configs_saved_before_the_scene_spec_still_load():
                      "release_above_rim": 1.5, "release_offset": 0.6}}
     scene = dataset_config_from_dict(old).scene
     assert scene.inner_size_x == scene.inner_size_y == (1.0, 1.0)
-    assert scene.wall_height == (0.25, 0.25) and scene.release_above_rim == (1.5, 1.5)
+    assert scene.wall_height == (0.25, 0.25) and scene.release_height == (1.5, 1.5)
     assert scene.release_margin == pytest.approx(0.1)
 
 

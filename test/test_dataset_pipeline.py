@@ -22,12 +22,9 @@ import pytest
 
 from task_outcome_ros.labels import (
     BACKGROUND,
-    CONTAINER,
-    FELL_OUTSIDE,
+    DEFAULT_TABLE,
+    FIXTURE,
     IGNORE,
-    OUTCOME_IDS,
-    OUTCOME_NAMES,
-    SUCCESS,
     outcome_pixel_counts,
     outcomes_present,
 )
@@ -39,13 +36,20 @@ from training.config import (
     dataset_config_from_dict,
     load_json,
 )
-from training.dataset import split_episodes
-from training.discover import features, name_cluster
+from training.dataset import manifest_table, split_episodes
+from training.discover import describe_cluster, features, table_of
 from training.fixture import episode_fixture
 from training.geometry import SAMPLE_GRID, geometric_outcome, object_measurements
 from training.render import draw_camera, read_pair, render, render_episode, scene_boxes
 from training.scene import load_scene
 from training.seeding import episode_rng
+
+# The default task's outcome ids (docs/interface.md §3).
+SUCCESS, FELL_OUTSIDE, STUCK_ON_RIM = (DEFAULT_TABLE.outcome_ids[name] for name in
+                                      DEFAULT_TABLE.outcome_names)
+
+
+task_word = DiscoverConfig().outcome_name  # descriptor -> the default task's word
 
 pytestmark = pytest.mark.pipeline
 
@@ -140,12 +144,15 @@ def test_the_tote_spec_is_deterministic_and_labels_its_own_scene(tmp_path):
         assert 0.15 <= f["half_x"] <= 0.40 and 0.125 <= f["half_y"] <= 0.30
         assert 0.10 <= f["wall_height"] <= 0.30 and f["table"] is not None
     manifest = load_json(runs[1] / "manifest.json")
+    # Eight episodes need not show every outcome: the ids are the run's own table's.
+    table = manifest_table(manifest)
+    assert table == table_of(load_json(runs[1] / "discovery.json"))
     for im, names in zip(manifest["images"], outcomes):
         _, labels = read_pair(runs[1], im["episode"])
         # Only the episode's own outcomes are painted (plus background, fixture, no depth).
-        allowed = {0, 1, 255} | {OUTCOME_IDS[name] for name in names}
+        allowed = {0, 1, 255} | {table.outcome_ids[name] for name in names}
         assert set(np.unique(labels).tolist()) <= allowed, (im["episode"], names)
-        assert im["present"] == outcomes_present(labels)
+        assert im["present"] == outcomes_present(labels, table=table)
     assert shapes <= {"box", "cylinder"}
 
 
@@ -203,8 +210,8 @@ def test_discovery_finds_the_three_outcomes(discovery_run):
     assert report["n_episodes"] == 400
     assert report["n_clusters"] == 3
     sizes = report["cluster_names"]
-    assert set(sizes) == set(OUTCOME_NAMES)
-    assert all(sizes[name] > 0 for name in OUTCOME_NAMES), sizes
+    assert set(sizes) == set(DEFAULT_TABLE.outcome_names)
+    assert all(sizes[name] > 0 for name in DEFAULT_TABLE.outcome_names), sizes
     assert max(sizes, key=sizes.get) == "success"
     assert sum(sizes.values()) == report["n_objects"]
     assert report["ari_vs_geometry"] >= 0.95
@@ -223,7 +230,7 @@ def test_discovery_finds_the_three_outcomes(discovery_run):
 def test_one_grid_point_outside_is_farther_than_eps_from_fully_inside():
     """The gap discovery relies on: a box poking out of the container by one sample point is
     not within DBSCAN's eps of the fully-inside spike, so it cannot chain into success."""
-    base = {"com_beyond_wall": -5.0}
+    base = {"com_beyond_edge": -5.0}
     inside, one_out = features([{**base, "inside_fraction": 1.0},
                                 {**base, "inside_fraction": 1.0 - 1.0 / SAMPLE_GRID**3}])
     assert inside[1] == 0.0
@@ -266,7 +273,7 @@ BOTTOM = SCENE.bottom_thickness
 IN_MIDDLE = _box((0.2, 0.15, 0.1), (0.05, -0.1, BOTTOM + 0.05))
 OUTSIDE = _box((0.2, 0.15, 0.1), (0.9, 0.3, 0.05))
 UPRIGHT_TALL = _box((0.1, 0.1, 0.3), (0.0, 0.0, BOTTOM + 0.15))         # top 0.07 above rim
-ON_THE_WALL = _box((0.2, 0.2, 0.1), (0.51, 0.0, SCENE.max_wall_height + 0.05))
+ON_THE_WALL = _box((0.2, 0.2, 0.1), (0.51, 0.0, SCENE.wall_height[1] + 0.05))
 
 
 @pytest.mark.parametrize("obj,expected", [(IN_MIDDLE, "success"), (OUTSIDE, "fell_outside"),
@@ -275,13 +282,13 @@ ON_THE_WALL = _box((0.2, 0.2, 0.1), (0.51, 0.0, SCENE.max_wall_height + 0.05))
                          ids=["middle", "outside", "upright-tall", "on-wall"])
 def test_geometric_outcome_of_hand_made_states(obj, expected):
     m = object_measurements(obj, FLAT, SCENE)
-    assert geometric_outcome(m, SCENE) == expected
+    assert task_word(geometric_outcome(m)) == expected
     if expected == "success":
-        assert m["inside_fraction"] == 1.0 and m["top_above_rim"] < 0
+        assert m["inside_fraction"] == 1.0 and m["top_above_region"] < 0
     if expected == "fell_outside":
         assert m["inside_fraction"] == 0.0 and m["com_offset"] > 1.04
     if obj is UPRIGHT_TALL:
-        assert m["top_above_rim"] == pytest.approx(0.07)
+        assert m["top_above_region"] == pytest.approx(0.07)
 
 
 def test_geometry_uses_the_container_frame():
@@ -289,11 +296,11 @@ def test_geometry_uses_the_container_frame():
     (Chebyshev distance 0.46) and its floor height moves with the container."""
     obj = _box((0.1, 0.1, 0.1), (0.65, 0.0, 0.3 + BOTTOM + 0.05))
     raised = {"container_yaw": 0.0, "floor_z": 0.3}
-    assert geometric_outcome(object_measurements(obj, raised, SCENE), SCENE) == "fell_outside"
+    assert task_word(geometric_outcome(object_measurements(obj, raised, SCENE))) == "fell_outside"
     turned = {"container_yaw": np.pi / 4, "floor_z": 0.3}
     m = object_measurements(obj, turned, SCENE)
     assert m["com_offset"] == pytest.approx(0.65 / np.sqrt(2) / 0.5)
-    assert geometric_outcome(m, SCENE) == "success"
+    assert task_word(geometric_outcome(m)) == "success"
 
 
 def test_name_cluster_names_from_geometry():
@@ -307,13 +314,13 @@ def test_name_cluster_names_from_geometry():
             out.append(object_measurements(moved, FLAT, SCENE))
         return out
 
-    assert name_cluster(members(IN_MIDDLE), SCENE) == "success"
-    assert name_cluster(members(OUTSIDE), SCENE) == "fell_outside"
-    assert name_cluster(members(UPRIGHT_TALL), SCENE) == "stuck_on_rim"
-    assert name_cluster(members(ON_THE_WALL, jitter=0.005), SCENE) == "stuck_on_rim"
+    assert task_word(describe_cluster(members(IN_MIDDLE))) == "success"
+    assert task_word(describe_cluster(members(OUTSIDE))) == "fell_outside"
+    assert task_word(describe_cluster(members(UPRIGHT_TALL))) == "stuck_on_rim"
+    assert task_word(describe_cluster(members(ON_THE_WALL, jitter=0.005))) == "stuck_on_rim"
     # A cluster is named by its typical member, not by a stray one.
     mostly_inside = members(IN_MIDDLE, 12) + members(OUTSIDE, 3)
-    assert name_cluster(mostly_inside, SCENE) == "success"
+    assert task_word(describe_cluster(mostly_inside)) == "success"
 
 
 # ---- labels and depth agree with the 3-D scene ----------------------------------------------
@@ -373,9 +380,9 @@ def shots(discovery_run) -> list[dict]:
         if set(names) - seen or len(chosen) < 2:
             chosen.append(i)
             seen |= set(names)
-        if seen == set(OUTCOME_NAMES) and len(chosen) >= 3:
+        if seen == set(DEFAULT_TABLE.outcome_names) and len(chosen) >= 3:
             break
-    assert seen == set(OUTCOME_NAMES)
+    assert seen == set(DEFAULT_TABLE.outcome_names)
     return _shots(cfg, episodes, outcomes, chosen)
 
 
@@ -404,8 +411,8 @@ def test_clean_depth_lies_on_the_labelled_surface(shots):
             dist = np.min([np.abs(_box_distance(pts, b)) for b in boxes], axis=0)
             assert dist.max() < TOL, f"episode {shot['index']} label {label}: {dist.max()} m"
             labelled.add(int(label))
-        assert (labels == CONTAINER).any()
-    assert labelled >= {CONTAINER, *OUTCOME_IDS.values()}
+        assert (labels == FIXTURE).any()
+    assert labelled >= {FIXTURE, *DEFAULT_TABLE.outcome_ids.values()}
 
 
 def test_clean_render_is_the_nearest_surface(shots):
@@ -476,7 +483,7 @@ def test_manifest_records_seeds_camera_objects_and_presence(run, run_data):
         assert 1.6 <= cam["distance"] <= 2.4 and 40.0 <= cam["elevation_deg"] <= 65.0
         position, target = np.array(cam["position"]), np.array(cam["look_at"])
         assert np.linalg.norm(position - target) == pytest.approx(cam["distance"])
-        centre = [0.0, 0.0, episodes[i]["floor_z"] + cfg.scene.max_wall_height / 2]
+        centre = [0.0, 0.0, episodes[i]["floor_z"] + cfg.scene.height_scale / 2]
         assert np.linalg.norm(target - centre) <= 0.1 + 1e-9
         # The recorded seed alone reproduces the camera.
         again, _ = draw_camera(cfg.camera, episode_fixture(episodes[i], cfg.scene),

@@ -42,9 +42,11 @@ def _frame(fixture: Fixture, distance: float, elevation: float = 55.0, f: float 
     return depth, Intrinsics(640, 480, f, f, 319.5, 239.5)
 
 
-CONTAINER = Fixture(0.5, 0.5, 0.25, 0.02, 0.02, 0.0, 0.0, 0.3, 0.0)
-A_TOTE = Fixture(0.3, 0.2, 0.2, 0.01, 0.01, 0.0, 0.0, 0.2, 0.75,
-                 Table(0.9, 0.7, 0.0, 0.0, 0.75, 0.0))
+CONTAINER = Fixture(half_x=0.5, half_y=0.5, wall_height=0.25, wall_thickness=0.02,
+                    bottom_thickness=0.02, x=0.0, y=0.0, yaw=0.3, base_z=0.0)
+A_TOTE = Fixture(half_x=0.3, half_y=0.2, wall_height=0.2, wall_thickness=0.01,
+                 bottom_thickness=0.01, x=0.0, y=0.0, yaw=0.2, base_z=0.75,
+                 table=Table(0.9, 0.7, 0.0, 0.0, 0.75, 0.0))
 BOX = {"shape": "box", "size": [0.2, 0.15, 0.1], "position": [0.1, 0.0, 0.07],
        "orientation": [0.0, 0.0, 0.0, 1.0]}
 

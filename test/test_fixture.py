@@ -9,12 +9,14 @@ import math
 import numpy as np
 import pytest
 
-from task_outcome_ros.labels import CONTAINER, OUTCOME_IDS
-from training.config import SceneConfig
+from task_outcome_ros.labels import DEFAULT_TABLE, FIXTURE
+from training.config import DiscoverConfig, SceneConfig
 from training.discover import features
 from training.fixture import Fixture, Table, draw_fixture, episode_fixture, fixture_from_record
 from training.geometry import geometric_outcome, object_measurements, object_sample_points
 from training.render import Camera, SceneBox, look_at, render, scene_boxes
+
+task_word = DiscoverConfig().outcome_name  # descriptor -> the default task's word
 
 pytestmark = pytest.mark.unit
 
@@ -22,6 +24,9 @@ pytestmark = pytest.mark.unit
 TOTE = Fixture(half_x=0.4, half_y=0.2, wall_height=0.15, wall_thickness=0.01,
                bottom_thickness=0.01, x=0.1, y=-0.05, yaw=math.radians(30), base_z=0.75,
                table=Table(0.9, 0.7, 0.1, -0.05, 0.75, 0.0))
+# The paper's 1 m container at the origin, level.
+SQUARE = dict(half_x=0.5, half_y=0.5, wall_height=0.25, wall_thickness=0.02,
+              bottom_thickness=0.02, x=0.0, y=0.0, yaw=0.0, base_z=0.0)
 SCENE = SceneConfig(inner_size_x=(0.8, 0.8), inner_size_y=(0.4, 0.4), wall_height=(0.15, 0.15),
                     wall_thickness=0.01, bottom_thickness=0.01)
 
@@ -54,21 +59,21 @@ TALL_INSIDE = _at((-0.2, 0.05), 0.11, size=(0.05, 0.05, 0.2), shape="cylinder")
                          ids=["inside-long-axis", "outside-short-axis", "on-wall", "tall"])
 def test_a_rectangle_is_measured_per_axis(obj, expected):
     m = object_measurements(obj, _episode(obj), SCENE)
-    assert geometric_outcome(m, SCENE) == expected
+    assert task_word(geometric_outcome(m)) == expected
     if obj is INSIDE_LONG:  # 0.35 of a 0.4 half width: inside, though > the short half 0.2
         assert m["com_offset"] == pytest.approx(0.35 / 0.4)
         assert m["inside_fraction"] == 1.0
     if obj is OUTSIDE_SHORT:
         assert m["com_offset"] == pytest.approx(0.35 / 0.2) and m["inside_fraction"] == 0.0
     if obj is TALL_INSIDE:  # a cylinder standing 0.21 m tall in 0.15 m walls
-        assert m["top_above_rim"] == pytest.approx(0.21 - 0.15)
+        assert m["top_above_region"] == pytest.approx(0.21 - 0.15)
 
 
 def test_features_keep_the_gap_between_inside_and_sticking_out():
     inside = object_measurements(INSIDE_LONG, _episode(INSIDE_LONG), SCENE)
     poking = _at((0.0, 0.0), 0.15 - 0.03 + 0.002)  # top 2 mm above the rim
     out = object_measurements(poking, _episode(poking), SCENE)
-    assert 0.0 < out["top_above_rim"] < 0.003 and out["inside_fraction"] < 1.0
+    assert 0.0 < out["top_above_region"] < 0.003 and out["inside_fraction"] < 1.0
     f_in, f_out = features([inside, out])
     assert f_in[1] == 0.0 and f_out[1] > 3 * 0.12  # protrusion: more than 3 eps apart
 
@@ -105,9 +110,9 @@ def test_rectangular_container_labels_sit_where_the_geometry_is():
     episode = _episode(INSIDE_LONG, OUTSIDE_SHORT)
     boxes = scene_boxes(episode, ["success", "fell_outside"], SCENE)
     depth, labels, _ = render(boxes, TOTE.room_floor_z, _camera_over(TOTE))
-    assert (labels == CONTAINER).sum() > 500
+    assert (labels == FIXTURE).sum() > 500
     for outcome in ("success", "fell_outside"):
-        assert (labels == OUTCOME_IDS[outcome]).sum() > 20, outcome
+        assert (labels == DEFAULT_TABLE.outcome_ids[outcome]).sum() > 20, outcome
     # Background is the table top around the tote and, beyond its edge, the room floor.
     cam = _camera_over(TOTE)
     v, u = np.nonzero((labels == 0) & np.isfinite(depth))
@@ -239,12 +244,11 @@ def test_a_share_of_frames_gets_the_tof_sensor_and_camera_info_has_its_own_error
 
 
 def test_a_tilted_support_leans_gravity_and_looks_tilted_to_a_level_camera():
-    tilted = Fixture(0.5, 0.5, 0.25, 0.02, 0.02, 0.0, 0.0, 0.0, 0.0, tilt_deg=6.0,
-                     tilt_azimuth_deg=40.0)
+    tilted = Fixture(**SQUARE, tilt_deg=6.0, tilt_azimuth_deg=40.0)
     g = np.array(tilted.gravity())
     assert np.linalg.norm(g) == pytest.approx(9.81)
     assert math.degrees(math.acos(-g[2] / 9.81)) == pytest.approx(6.0)
-    assert Fixture(0.5, 0.5, 0.25, 0.02, 0.02, 0.0, 0.0, 0.0, 0.0).gravity() == [0, 0, -9.81]
+    assert Fixture(**SQUARE).gravity() == [0, 0, -9.81]
     # A camera straight down (against the true vertical) sees the floor inclined by 6 deg.
     from training.config import CameraConfig
     from training.render import draw_camera

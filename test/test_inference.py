@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import cv2
@@ -18,14 +19,7 @@ from task_outcome_ros.inference import (
     default_model_path,
     predict_labels,
 )
-from task_outcome_ros.labels import (
-    BACKGROUND,
-    FELL_OUTSIDE,
-    OUTCOME_NAMES,
-    STUCK_ON_RIM,
-    SUCCESS,
-    outcomes_present,
-)
+from task_outcome_ros.labels import BACKGROUND, DEFAULT_TABLE, LabelTable, outcomes_present
 from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
     IN_CHANNELS,
@@ -40,12 +34,16 @@ pytestmark = pytest.mark.unit
 ARGS = {"in_channels": IN_CHANNELS, "num_classes": 5, "base_width": 4, "levels": 3,
         "decoder_convs": 1}
 INPUT_SIZE = (160, 120)
+# The default task's outcome ids, for hand-made label images.
+SUCCESS_ID, FELL_ID, STUCK_ID = (DEFAULT_TABLE.outcome_ids[name] for name in
+                                 ("success", "fell_outside", "stuck_on_rim"))
 
 
-def _make_checkpoint(path: Path, seed: int = 0,
-                     normalisation: dict = DEFAULT_NORMALISATION) -> Path:
+def _make_checkpoint(path: Path, seed: int = 0, normalisation: dict = DEFAULT_NORMALISATION,
+                     table: LabelTable = DEFAULT_TABLE) -> Path:
     torch.manual_seed(seed)
-    model = OutcomeFCN(**ARGS)
+    args = {**ARGS, "num_classes": table.num_classes}
+    model = OutcomeFCN(**args)
     # BN statistics from real inputs, so random-init labels vary over the image (a
     # backend comparison on a constant label image would prove nothing).
     batch = torch.from_numpy(np.stack([preprocess(_scene(120, 160, s), INPUT_SIZE)
@@ -55,8 +53,9 @@ def _make_checkpoint(path: Path, seed: int = 0,
         model.head.bias.zero_()
         for _ in range(20):
             model(batch)
-    return checkpoint.save(path, model, model_args=ARGS, input_size=INPUT_SIZE,
-                           normalisation=normalisation, train_config={}, metrics={})
+    return checkpoint.save(path, model, model_args=args, input_size=INPUT_SIZE,
+                           normalisation=normalisation, train_config={}, metrics={},
+                           label_table=table)
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +81,7 @@ def test_output_keeps_input_size(segmenter: OutcomeSegmenter, h: int, w: int) ->
     result = segmenter.segment(_scene(h, w))
     assert result.labels.shape == (h, w) and result.labels.dtype == np.uint8
     assert result.labels.max() < 5
-    assert set(result.present) == set(OUTCOME_NAMES) == set(result.objects)
+    assert set(result.present) == set(DEFAULT_TABLE.outcome_names) == set(result.objects)
     assert result.present == outcomes_present(result.labels, segmenter.presence_min_pixels)
     assert result.inference_ms > 0
 
@@ -113,9 +112,9 @@ def test_presence_threshold_is_on_full_size_labels(segmenter: OutcomeSegmenter,
                                                    monkeypatch) -> None:
     """2x2 working pixels -> 64 full-size px (present); 1x3 -> 48 px (absent, < 50)."""
     small = np.zeros((120, 160), np.uint8)
-    small[10:12, 10:12] = SUCCESS
-    small[50, 50:53] = FELL_OUTSIDE
-    small[80:90, 100:110] = STUCK_ON_RIM
+    small[10:12, 10:12] = SUCCESS_ID
+    small[50, 50:53] = FELL_ID
+    small[80:90, 100:110] = STUCK_ID
     monkeypatch.setattr(segmenter, "_predict_small", lambda x: small)
     depth = np.full((480, 640), 2.0, np.float32)
     depth[320:360, 400:440] = 1.5
@@ -134,23 +133,23 @@ def test_presence_threshold_is_on_full_size_labels(segmenter: OutcomeSegmenter,
 
 def test_count_objects_on_hand_made_labels() -> None:
     labels = np.zeros((100, 120), np.uint8)
-    labels[10:20, 10:20] = SUCCESS          # 100 px
-    labels[50:55, 50:55] = SUCCESS          # 25 px, below 50
-    labels[60:80, 90:100] = SUCCESS         # 200 px
-    labels[80:81, 100:101] = SUCCESS        # diagonal neighbour: joins the 200 px object
-    labels[0:30, 60:70] = FELL_OUTSIDE
+    labels[10:20, 10:20] = SUCCESS_ID          # 100 px
+    labels[50:55, 50:55] = SUCCESS_ID          # 25 px, below 50
+    labels[60:80, 90:100] = SUCCESS_ID         # 200 px
+    labels[80:81, 100:101] = SUCCESS_ID        # diagonal neighbour: joins the 200 px object
+    labels[0:30, 60:70] = FELL_ID
     depth = np.full((100, 120), 2.0, np.float32)
     depth[10:20, 10:20] = 1.25
     depth[60:81, 90:101] = np.nan
-    objs = count_objects(labels, SUCCESS, 50, depth)
+    objs = count_objects(labels, SUCCESS_ID, 50, depth)
     assert [o.pixel_count for o in objs] == [201, 100]
     assert all(o.outcome == "success" for o in objs)
     assert objs[0].median_depth_m is None  # no valid depth under it
     assert objs[1].median_depth_m == pytest.approx(1.25)
     assert objs[1].centroid_px == pytest.approx((14.5, 14.5))
-    assert len(count_objects(labels, SUCCESS, 1)) == 3
-    assert count_objects(labels, STUCK_ON_RIM, 1) == []
-    assert count_objects(labels, FELL_OUTSIDE, 50)[0].median_depth_m is None  # no depth given
+    assert len(count_objects(labels, SUCCESS_ID, 1)) == 3
+    assert count_objects(labels, STUCK_ID, 1) == []
+    assert count_objects(labels, FELL_ID, 50)[0].median_depth_m is None  # no depth given
     with pytest.raises(ValueError):
         count_objects(labels, 9, 1)
 
@@ -161,14 +160,14 @@ def test_count_objects_matches_whole_frame_labelling() -> None:
     labels = np.zeros((120, 160), np.uint8)
     for _ in range(6):
         y, x = rng.integers(30, 100), rng.integers(40, 140)
-        labels[y:y + rng.integers(3, 15), x:x + rng.integers(3, 15)] = SUCCESS
+        labels[y:y + rng.integers(3, 15), x:x + rng.integers(3, 15)] = SUCCESS_ID
     depth = rng.uniform(1.5, 2.5, labels.shape).astype(np.float32)
     n, cc, stats, centroids = cv2.connectedComponentsWithStats(
-        (labels == SUCCESS).astype(np.uint8), connectivity=8)
+        (labels == SUCCESS_ID).astype(np.uint8), connectivity=8)
     expected = sorted(((int(stats[k, cv2.CC_STAT_AREA]), tuple(centroids[k]),
                         float(np.median(depth[cc == k]))) for k in range(1, n)
                        if stats[k, cv2.CC_STAT_AREA] >= 10), key=lambda e: -e[0])
-    found = count_objects(labels, SUCCESS, 10, depth)
+    found = count_objects(labels, SUCCESS_ID, 10, depth)
     assert len(found) == len(expected) > 1
     for obj, (area, centroid, median) in zip(found, expected):
         assert obj.pixel_count == area
@@ -262,6 +261,82 @@ def test_auto_backend_falls_back_when_onnx_is_stale(onnx_ckpt: Path, tmp_path: P
     assert OutcomeSegmenter(stale, backend="auto").backend == "torch"
     with pytest.raises(CheckpointError, match="no ONNX file"):
         OutcomeSegmenter(stale, backend="onnx")
+
+
+def test_a_model_of_another_task_reports_its_own_outcomes(tmp_path: Path,
+                                                          monkeypatch) -> None:
+    """A shelf model: presence, counts, objects and fragments follow its table, not the
+    default task's (ids 2..5 are on_shelf, fell_off, hanging_over_edge, tipped)."""
+    from model_helpers import SHELF_TABLE
+
+    seg = OutcomeSegmenter(_make_checkpoint(tmp_path / "shelf.pt", table=SHELF_TABLE),
+                           backend="torch")
+    assert seg.table == SHELF_TABLE
+    ids = SHELF_TABLE.outcome_ids
+    small = np.zeros((120, 160), np.uint8)
+    small[10:40, 10:40] = ids["hanging_over_edge"]
+    small[10:12, 38:40] = ids["tipped"]      # a 4-pixel fringe on it: absorbed (fragments.py)
+    small[80:90, 100:110] = ids["tipped"]    # an object of its own
+    monkeypatch.setattr(seg, "_predict_small", lambda x: small.copy())
+    result = seg.segment(np.full((480, 640), 2.0, np.float32))
+    assert tuple(result.present) == tuple(result.pixel_counts) == tuple(result.objects) \
+        == ("on_shelf", "fell_off", "hanging_over_edge", "tipped")
+    assert result.present == {"on_shelf": False, "fell_off": False, "hanging_over_edge": True,
+                              "tipped": True}
+    assert result.pixel_counts["hanging_over_edge"] == 30 * 30 * 16  # the fringe joined it
+    [tipped] = result.objects["tipped"]
+    assert tipped.outcome == "tipped" and tipped.pixel_count == 1600
+    assert result.present == outcomes_present(result.labels, table=SHELF_TABLE)
+
+
+def _strip_label_table(onnx_path: Path) -> None:
+    """Make ``onnx_path`` look like an export from before tables travelled as data."""
+    import onnx
+
+    from task_outcome_ros.onnx_export import META_LABEL_TABLE
+
+    proto = onnx.load(str(onnx_path))
+    kept = [(e.key, e.value) for e in proto.metadata_props if e.key != META_LABEL_TABLE]
+    del proto.metadata_props[:]
+    for key, value in kept:
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(proto, str(onnx_path))
+
+
+def test_onnx_export_records_the_label_table(tmp_path: Path) -> None:
+    """The export carries the table; an export without one is the default task's, so it
+    serves a default-task checkpoint and is refused (torch instead) for another task's."""
+    pytest.importorskip("onnx")
+    pytest.importorskip("onnxruntime")
+    from model_helpers import SHELF_TABLE
+
+    from task_outcome_ros.onnx_export import export_onnx, metadata_label_table, read_metadata
+
+    shelf = _make_checkpoint(tmp_path / "shelf" / "outcome_fcn.pt", table=SHELF_TABLE)
+    onnx_path = export_onnx(shelf, verify=False)
+    assert metadata_label_table(read_metadata(onnx_path)) == SHELF_TABLE
+    seg = OutcomeSegmenter(shelf, backend="auto")
+    assert seg.backend == "onnx" and seg.table == SHELF_TABLE
+    _strip_label_table(onnx_path)
+    assert metadata_label_table(read_metadata(onnx_path)) == DEFAULT_TABLE
+    seg = OutcomeSegmenter(shelf, backend="auto")
+    assert seg.backend == "torch" and "names its classes" in seg.backend_reason
+    assert seg.table == SHELF_TABLE
+
+    default = _make_checkpoint(tmp_path / "default" / "outcome_fcn.pt")
+    _strip_label_table(export_onnx(default, verify=False))
+    assert OutcomeSegmenter(default, backend="onnx").table == DEFAULT_TABLE
+
+
+def test_shipped_models_load_with_the_default_table() -> None:
+    """Shipped before tables travelled as data: a {name: id} table in the checkpoint, none in
+    the ONNX export. Both still serve, as the default task's."""
+    for name in inference.shipped_models():
+        seg = OutcomeSegmenter(name, backend="auto")
+        assert seg.table is DEFAULT_TABLE
+        if importlib.util.find_spec("onnxruntime") is not None:
+            assert seg.backend == "onnx", seg.backend_reason
 
 
 def test_background_only_labels_are_not_present() -> None:

@@ -5,18 +5,19 @@ from __future__ import annotations
 import pytest
 import torch
 
-from task_outcome_ros.labels import IGNORE, NUM_CLASSES, OUTCOME_IDS
+from task_outcome_ros.labels import DEFAULT_TABLE, IGNORE
 from training.losses import outcome_lovasz_loss
 
 pytestmark = pytest.mark.unit
 
-SUCCESS, STUCK = OUTCOME_IDS["success"], OUTCOME_IDS["stuck_on_rim"]
+SUCCESS, STUCK = DEFAULT_TABLE.outcome_ids["success"], DEFAULT_TABLE.outcome_ids["stuck_on_rim"]
 
 
 def _confident(labels: torch.Tensor) -> torch.Tensor:
     """Logits that put (almost) all probability on ``labels`` (IGNORE -> class 0)."""
     safe = torch.where(labels == IGNORE, 0, labels)
-    return 30.0 * torch.nn.functional.one_hot(safe, NUM_CLASSES).permute(0, 3, 1, 2).float()
+    one_hot = torch.nn.functional.one_hot(safe, DEFAULT_TABLE.num_classes)
+    return 30.0 * one_hot.permute(0, 3, 1, 2).float()
 
 
 def test_a_right_answer_costs_nothing_and_a_spurious_fragment_costs_a_whole_class():
@@ -47,15 +48,15 @@ def test_small_and_large_objects_count_alike():
 
 def test_ignored_pixels_take_no_part_and_truncation_keeps_the_largest_errors():
     torch.manual_seed(0)
-    labels = torch.randint(0, NUM_CLASSES, (2, 24, 32))
+    labels = torch.randint(0, DEFAULT_TABLE.num_classes, (2, 24, 32))
     labels[:, :4] = IGNORE
-    logits = torch.randn(2, NUM_CLASSES, 24, 32, requires_grad=True)
+    logits = torch.randn(2, DEFAULT_TABLE.num_classes, 24, 32, requires_grad=True)
     loss = outcome_lovasz_loss(logits, labels, top_k=10_000)
     loss.backward()
     loss = loss.detach()
     assert logits.grad[:, :, :4].abs().max() == 0          # no gradient where there is no depth
     other = logits.detach().clone()
-    other[:, :, :4] = torch.randn(2, NUM_CLASSES, 4, 32)
+    other[:, :, :4] = torch.randn(2, DEFAULT_TABLE.num_classes, 4, 32)
     assert torch.allclose(outcome_lovasz_loss(other, labels, top_k=10_000), loss)
     # Keeping only the largest errors changes the value a little, not the nature.
     truncated = float(outcome_lovasz_loss(logits.detach(), labels, top_k=300))

@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from task_outcome_ros.labels import NUM_CLASSES, SUCCESS
+from task_outcome_ros.labels import DEFAULT_TABLE
 from task_outcome_ros.model import (
     DEFAULT_MODEL_ARGS,
     DEFAULT_NORMALISATION,
@@ -27,7 +27,7 @@ def test_any_input_size_keeps_size(h: int, w: int) -> None:
     model = OutcomeFCN(base_width=4, levels=3).eval()
     with torch.inference_mode():
         out = model(torch.randn(2, IN_CHANNELS, h, w))
-    assert out.shape == (2, NUM_CLASSES, h, w)
+    assert out.shape == (2, DEFAULT_TABLE.num_classes, h, w)
 
 
 def test_build_model_from_default_args() -> None:
@@ -89,7 +89,7 @@ def _box_scenes(n: int, h: int, w: int, rng: np.random.Generator):
     labels = np.zeros((n, h, w), np.int64)
     for i in range(n):
         y, x = rng.integers(4, h - 14), rng.integers(4, w - 14)
-        cls = int(rng.integers(1, NUM_CLASSES))
+        cls = int(rng.integers(1, DEFAULT_TABLE.num_classes))
         depths[i, y:y + 10, x:x + 10] = 2.0 - 0.1 * cls
         labels[i, y:y + 10, x:x + 10] = cls
     return depths, labels
@@ -116,7 +116,8 @@ def test_model_overfits_tiny_batch() -> None:
         pred = model(x).argmax(1)
     objects = y > 0
     assert (pred[objects] == y[objects]).float().mean() > 0.9
-    assert (pred == SUCCESS).any() or not (y == SUCCESS).any()
+    success = DEFAULT_TABLE.outcome_ids["success"]
+    assert (pred == success).any() or not (y == success).any()
 
 
 def test_training_defaults_build_the_default_architecture():

@@ -10,11 +10,13 @@ Two node processes serve the whole module (module-scoped fixtures):
   in namespace /cam1 with qos:=reliable and no overlay.
 
 Everything else asserts structure and consistency (sizes, headers, status fields agreeing with
-the labels received), which must hold for any model. Tests with the shipped checkpoint and
+the labels received, in the model's label table), which must hold for any model; one more node
+serves a model of another task (a shelf's outcomes). Tests with the shipped checkpoint and
 known-truth images live elsewhere."""
 
 from __future__ import annotations
 
+import json
 import random
 import subprocess
 import sys
@@ -36,6 +38,7 @@ from model_helpers import (  # noqa: E402
     BAND_NEAR,
     BAND_SPLIT_M,
     DEFAULT_ENVELOPE_CONFIG,
+    SHELF_TABLE,
 )
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
@@ -43,6 +46,7 @@ from visualization_msgs.msg import Marker  # noqa: E402
 
 from task_outcome_ros import labels as L  # noqa: E402
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS  # noqa: E402
+from task_outcome_ros.outcome_report import label_table_value  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -50,12 +54,13 @@ DOMAIN_ID = random.randint(1, 200)
 CONFIG = nh.REPO / "config" / "outcome_node.yaml"
 ALL_OUTPUTS = ("status", "labels", "overlay", "markers")
 BURST = 24  # 640 x 480 frames published back to back: ~1 ms each, the model takes ~10
+FELL_ID = L.DEFAULT_TABLE.outcome_ids["fell_outside"]
 
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("outcome_node")
-    ckpt = nh.make_checkpoint(tmp / "fell_everywhere.pt", favour=L.FELL_OUTSIDE)
+    ckpt = nh.make_checkpoint(tmp / "fell_everywhere.pt", favour=FELL_ID)
     # The shipped YAML (so rcl must parse it) with the test checkpoint on top.
     proc = nh.NodeProcess(["--params-file", str(CONFIG), "-p", f"model_path:={ckpt}"],
                           DOMAIN_ID, tmp / "node.log")
@@ -104,15 +109,16 @@ def labels_array(msg) -> np.ndarray:
     return np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.step)[:, :msg.width]
 
 
-def check_reply(request, reply) -> np.ndarray:
-    """Sizes, encodings and headers of labels/status/overlay; status consistent with labels."""
+def check_reply(request, reply, table: L.LabelTable = L.DEFAULT_TABLE) -> np.ndarray:
+    """Sizes, encodings and headers of labels/status/overlay; status consistent with labels
+    in the classes of ``table`` (the node's model's), which the status also carries."""
     key = nh.header_key(request.header)
     h, w = request.height, request.width
     lab = reply.labels
     assert (lab.encoding, lab.height, lab.width, lab.step) == ("mono8", h, w, w)
     assert nh.header_key(lab.header) == key and len(lab.data) == h * w
     labels = labels_array(lab)
-    assert set(np.unique(labels)) <= set(range(L.NUM_CLASSES))
+    assert set(np.unique(labels)) <= set(range(table.num_classes))
     if reply.overlay is not None:
         ov = reply.overlay
         assert (ov.encoding, ov.height, ov.width, ov.step) == ("rgb8", h, w, 3 * w)
@@ -122,23 +128,24 @@ def check_reply(request, reply) -> np.ndarray:
     (status,) = reply.status.status
     assert status.name == "task_outcome" and status.hardware_id == request.header.frame_id
     values = nh.status_values(reply.status)
+    assert values["label_table"] == label_table_value(table)
     threshold = L.presence_threshold(h, w)
     present = {}
-    for name in L.OUTCOME_NAMES:
+    for name, class_id in table.outcome_ids.items():
         pixels = int(values[f"{name}.pixels"])
-        assert pixels == int(np.count_nonzero(labels == L.OUTCOME_IDS[name]))
+        assert pixels == int(np.count_nonzero(labels == class_id))
         assert values[f"{name}.present"] in ("true", "false")
         present[name] = values[f"{name}.present"] == "true"
         assert present[name] == (pixels >= threshold)
         n_objects = int(values[f"{name}.objects"])
         assert 0 <= n_objects <= (pixels // threshold if present[name] else 0)
-        if name in L.FAILURE_OUTCOMES:
+        if name in table.failures:
             for k in range(n_objects):
                 u, v = (float(c) for c in values[f"{name}.{k}.centroid_px"].split(","))
                 assert 0 <= u <= w - 1 and 0 <= v <= h - 1
             assert f"{name}.{n_objects}.centroid_px" not in values
     expected = ",".join(sorted(n for n, p in present.items() if p)) or "none"
-    failure = any(present[n] for n in L.FAILURE_OUTCOMES)
+    failure = any(present[n] for n in table.failures)
     outside = values["envelope"].startswith("outside: ")
     if outside:  # never OK, and the message says why
         assert status.message == f"{expected}; outside the trained envelope: " \
@@ -215,10 +222,11 @@ def test_runtime_parameters(session):
         labels = np.frombuffer(bytes(reply.labels.data), np.uint8).reshape(48, 64)
         # alpha 1: pure label colours. This checkpoint labels every pixel fell_outside, except
         # where the depth is invalid (no measurement -> background, shown as depth only).
-        fell = labels == L.FELL_OUTSIDE
+        fell = labels == FELL_ID
         assert fell.mean() > 0.5 and (labels[~fell] == L.BACKGROUND).all()
-        assert (overlay[fell] == L.CLASS_COLOURS[L.FELL_OUTSIDE]).all()
-        assert not (overlay[~fell] == L.CLASS_COLOURS[L.FELL_OUTSIDE]).all(axis=-1).any()
+        colour = L.DEFAULT_TABLE.colours[FELL_ID]
+        assert (overlay[fell] == colour).all()
+        assert not (overlay[~fell] == colour).all(axis=-1).any()
     finally:
         assert _set_parameters(client, [("overlay_alpha", 0.5)]) == [True]
 
@@ -567,7 +575,8 @@ def test_node_without_training_dependencies_flags_frames_outside_its_envelope(tm
             "from task_outcome_ros.node import main\n"
             "sys.exit(main(sys.argv))\n")
     domain = (DOMAIN_ID + 50) % 200 + 1
-    ckpt = nh.make_checkpoint(tmp_path / "success_everywhere.pt", favour=L.SUCCESS,
+    ckpt = nh.make_checkpoint(tmp_path / "success_everywhere.pt",
+                              favour=L.DEFAULT_TABLE.outcome_ids["success"],
                               dataset=DEFAULT_ENVELOPE_CONFIG)
     proc = nh.NodeProcess(["-p", f"model_path:={ckpt}"], domain, tmp_path / "node.log",
                           command=[sys.executable, "-c", code, "outcome_node"])
@@ -620,6 +629,73 @@ def test_shipped_tote_model_loads_by_name_and_knows_its_envelope(tmp_path):
     finally:
         client.close()
         assert proc.stop() == 0
+
+
+def _check_with_fresh_frames(client, checker, depth: np.ndarray, timeout: float = 15.0):
+    """Call outcome/check and publish frames stamped now (the node's clock) until it answers."""
+    from task_outcome_ros.client import parse
+
+    future = checker.call_async()
+    deadline = time.monotonic() + timeout
+    while not future.done() and time.monotonic() < deadline:
+        ns = client.node.get_clock().now().nanoseconds
+        client.image_pub.publish(nh.depth_msg(depth, stamp=(ns // 10**9, ns % 10**9)))
+        client.spin_until(future.done, 0.1)
+    assert future.done(), "outcome/check did not answer"
+    return parse(future.result().success, future.result().message)
+
+
+def test_a_model_of_another_task_speaks_its_own_outcomes(tmp_path):
+    """A shelf model (on_shelf, fell_off, hanging_over_edge, tipped; its head makes tipped, id
+    5, win everywhere): the status names the shelf's outcomes and carries its table, tipped
+    (a failure mode of that table) is WARN, the overlay and the markers take its colour, and
+    outcome/check reports it as a failure."""
+    from task_outcome_ros.client import OutcomeCheckClient
+
+    domain = (DOMAIN_ID + 90) % 200 + 1
+    tipped = SHELF_TABLE.outcome_ids["tipped"]
+    ckpt = nh.make_checkpoint(tmp_path / "shelf_tipped.pt", favour=tipped, table=SHELF_TABLE)
+    proc = nh.NodeProcess(["-p", f"model_path:={ckpt}", "-p", "overlay_alpha:=1.0"], domain,
+                          tmp_path / "node.log")
+    client = nh.OutcomeClient(domain)
+    try:
+        client.wait_for_node(proc)
+        assert ("outcomes on_shelf, fell_off (failure), hanging_over_edge (failure), tipped "
+                "(failure)") in proc.log()
+        h, w = 48, 64
+        depth = np.full((h, w), 2.0, np.float32)
+
+        def make_msg():
+            client.info_pub.publish(nh.camera_info(w, h, 60.0, 30.0, 26.0))
+            return nh.depth_msg(depth, stamp=client.next_stamp())
+
+        msg, reply = _request_until(client, make_msg, lambda v: "tipped.0.centroid_m" in v)
+        labels = check_reply(msg, reply, SHELF_TABLE)
+        (status,) = reply.status.status
+        assert status.level == DiagnosticStatus.WARN and status.message == "tipped"
+        values = nh.status_values(reply.status)
+        assert json.loads(values["label_table"]) == SHELF_TABLE.to_dict()["classes"]
+        assert values["tipped.present"] == "true" and values["on_shelf.present"] == "false"
+        assert not any(k.startswith(("success.", "fell_outside.", "stuck_on_rim."))
+                       for k in values)
+        assert (labels == tipped).all()
+        colour = SHELF_TABLE.colours[tipped]
+        overlay = np.frombuffer(bytes(reply.overlay.data), np.uint8).reshape(h, w, 3)
+        assert (overlay == colour).all()
+        (sphere,) = reply.markers.markers[1:]
+        assert sphere.ns == "tipped"
+        assert [sphere.color.r, sphere.color.g, sphere.color.b] == pytest.approx(
+            [c / 255.0 for c in colour], abs=1e-6)
+
+        checker = OutcomeCheckClient(client.node)
+        assert checker.wait_for_service(20.0), proc.log()
+        answer = _check_with_fresh_frames(client, checker, depth)
+        assert not answer.success and answer.outcomes == ("tipped",), answer
+        assert [f.outcome for f in answer.failures] == ["tipped"]
+    finally:
+        client.close()
+        assert proc.stop() == 0
+    assert "Traceback" not in proc.log(), proc.log()
 
 
 def test_shutdown_is_clean(session, band_session):

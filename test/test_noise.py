@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from task_outcome_ros.labels import BACKGROUND, IGNORE, SUCCESS
+from task_outcome_ros.labels import BACKGROUND, DEFAULT_TABLE, IGNORE
 from training.config import NoiseConfig
 from training.noise import (
     apply_kinect_noise,
@@ -23,6 +23,10 @@ from training.noise import (
     sigma_z,
     speckle_holes,
 )
+
+# The default task's outcome ids (docs/interface.md §3).
+SUCCESS, FELL_OUTSIDE, STUCK_ON_RIM = (DEFAULT_TABLE.outcome_ids[name] for name in
+                                      DEFAULT_TABLE.outcome_names)
 
 pytestmark = pytest.mark.unit
 

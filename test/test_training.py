@@ -14,19 +14,19 @@ import torch
 from model_helpers import make_checkpoint
 
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
-from task_outcome_ros.labels import (
-    CONTAINER,
-    FELL_OUTSIDE,
-    STUCK_ON_RIM,
-    SUCCESS,
-    outcomes_present,
-    presence_scores,
-)
+from task_outcome_ros.labels import DEFAULT_TABLE, FIXTURE, outcomes_present, presence_scores
 from task_outcome_ros.model import DEFAULT_NORMALISATION, check_normalisation
-from training.config import ConfigError, TrainConfig
+from training.config import ConfigError, DiscoverConfig, TrainConfig
 from training.dataset import load_manifest
 from training.evaluate import confusion, evaluate
 from training.hard_cases import episode_hard_cases
+
+# The default task's outcome ids (docs/interface.md §3).
+SUCCESS, FELL_OUTSIDE, STUCK_ON_RIM = (DEFAULT_TABLE.outcome_ids[name] for name in
+                                      DEFAULT_TABLE.outcome_names)
+
+
+task_word = DiscoverConfig().outcome_name  # descriptor -> the default task's word
 
 pytestmark = pytest.mark.pipeline
 
@@ -44,7 +44,7 @@ def test_presence_scores_on_hand_made_presence():
 
 def test_presence_rule_and_confusion_on_hand_made_label_images():
     truth = np.zeros((480, 640), np.uint8)
-    truth[100:200, 100:200] = CONTAINER
+    truth[100:200, 100:200] = FIXTURE
     truth[120:130, 120:125] = SUCCESS          # 50 px: exactly the threshold -> present
     truth[300:306, 300:308] = FELL_OUTSIDE     # 48 px: below it -> absent
     truth[0, 0] = 255
@@ -73,8 +73,8 @@ def test_train_config_validation_names_the_field():
         TrainConfig(camera_intrinsics="yes").validate()
     with pytest.raises(ConfigError, match="train.max_width"):
         TrainConfig(max_width=4).validate()
-    with pytest.raises(ConfigError, match="train.near_rim_weight"):
-        TrainConfig(near_rim_weight=0.5).validate()
+    with pytest.raises(ConfigError, match="train.near_boundary_weight"):
+        TrainConfig(near_boundary_weight=0.5).validate()
 
 
 def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():
@@ -151,17 +151,17 @@ def test_augmentation_moves_the_intrinsics_with_the_image():
     assert torch.isin(out[seen], depth[0]).all()
 
 
-def test_near_rim_sample_weights_follow_the_hard_case_tags(small_run, tmp_path):
+def test_near_boundary_sample_weights_follow_the_hard_case_tags(small_run, tmp_path):
     from training.hard_cases import episode_hard_cases
-    from training.train import near_rim_sample_weights
+    from training.train import near_boundary_sample_weights
 
     indices = np.arange(40)
-    assert near_rim_sample_weights(small_run, indices, 1.0) is None   # uniform: no lookup
-    weights = near_rim_sample_weights(small_run, indices, 3.0)
+    assert near_boundary_sample_weights(small_run, indices, 1.0) is None   # uniform: no lookup
+    weights = near_boundary_sample_weights(small_run, indices, 3.0)
     cases = episode_hard_cases(small_run, set(range(40)))
-    assert weights.tolist() == [3.0 if "near_rim" in cases[i].tags else 1.0 for i in indices]
+    assert weights.tolist() == [3.0 if "near_boundary" in cases[i].tags else 1.0 for i in indices]
     with pytest.raises(ValueError, match="simulate"):
-        near_rim_sample_weights(tmp_path, indices, 3.0)           # a run without simulate/
+        near_boundary_sample_weights(tmp_path, indices, 3.0)           # a run without simulate/
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
@@ -224,15 +224,15 @@ def test_short_real_training_improves_the_loss_and_evaluates(small_run):
         1 - len(report["mistakes"]) / report["n_images"])
     assert report["fragment_max_pixels"] == FRAGMENT_MAX_PIXELS
     hard = report["hard_cases"]    # tags come from the run's own simulated final states
-    assert set(hard["images"]) == {"near_rim", "across_wall"}
+    assert set(hard["images"]) == {"near_boundary", "across_edge"}
     val = [im["episode"] for im in load_manifest(small_run)["images"] if im["split"] == "val"]
     cases = episode_hard_cases(small_run, set(val))
     assert hard["untagged_images"] == sum(not cases[e].tags for e in val)
     assert hard["mistakes"]["untagged"] <= len(report["mistakes"])
     assert sum(hard["mistakes"].values()) >= len(report["mistakes"])  # each one counted
-    assert sum(e["images"] for e in hard["by_rim_gap"]) == report["n_images"]
-    assert sum(e["mistakes"] for e in hard["by_rim_gap"]) == len(report["mistakes"])
-    assert (small_run / "eval" / "rim_gap.png").exists()
+    assert sum(e["images"] for e in hard["by_boundary_gap"]) == report["n_images"]
+    assert sum(e["mistakes"] for e in hard["by_boundary_gap"]) == len(report["mistakes"])
+    assert (small_run / "eval" / "boundary_gap.png").exists()
     assert (small_run / "eval" / "confusion.png").exists()
 
     # Resuming a finished run changes nothing, also with another time budget (how a run is
@@ -317,14 +317,14 @@ def test_shipped_checkpoint_labels_a_fresh_scene_sensibly(tmp_path):
     agree, container_iou = 0, []
     for i in range(8):
         episode = simulate_episode(world, 987_654, i)
-        outcomes = [geometric_outcome(object_measurements(o, episode, cfg.scene), cfg.scene)
+        outcomes = [task_word(geometric_outcome(object_measurements(o, episode, cfg.scene)))
                     for o in episode["objects"]]
         shot = render_episode(episode, outcomes, cfg, 987_654)
         # With the camera the image was rendered with, as camera_info gives it to the node.
         result = seg.segment(shot["depth"], Intrinsics.from_record(shot["record"]["camera"]))
         assert result.labels.shape == shot["labels"].shape
         agree += result.present == outcomes_present(shot["labels"])
-        truth_c, pred_c = shot["labels"] == CONTAINER, result.labels == CONTAINER
+        truth_c, pred_c = shot["labels"] == FIXTURE, result.labels == FIXTURE
         container_iou.append((truth_c & pred_c).sum() / max(1, (truth_c | pred_c).sum()))
     world.close()
     assert agree >= 6, f"only {agree}/8 images with all outcomes right"

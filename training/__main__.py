@@ -97,24 +97,25 @@ def cmd_discover(args) -> None:
 
 def cmd_render(args) -> None:
     from training.dataset import write_manifest
+    from training.discover import load_outcomes
     from training.preview import save_examples
     from training.render import run_render
 
     cfg = resolve_dataset_config(args)
-    outcomes = load_json(Path(args.out) / "outcomes.json")["outcomes"]
-    records = run_render(args.out, cfg, _episodes(args, cfg), outcomes)
-    manifest = write_manifest(args.out, cfg, records)
+    outcomes, table = load_outcomes(args.out)
+    records = run_render(args.out, cfg, _episodes(args, cfg), outcomes, table)
+    manifest = write_manifest(args.out, cfg, records, table)
     save_examples(Path(args.out) / "examples.png", Path(args.out), manifest)
-    _save_noise_figure(args.out, cfg, _episodes(args, cfg), outcomes)
+    _save_noise_figure(args.out, cfg, _episodes(args, cfg), outcomes, table)
 
 
-def _save_noise_figure(out: Path, cfg: DatasetConfig, episodes, outcomes) -> None:
+def _save_noise_figure(out: Path, cfg: DatasetConfig, episodes, outcomes, table) -> None:
     from training.noise import save_clean_vs_noisy_figure
     from training.render import render_episode
 
-    shot = render_episode(episodes[0], outcomes[0], cfg, cfg.seed)
+    shot = render_episode(episodes[0], outcomes[0], cfg, cfg.seed, table)
     save_clean_vs_noisy_figure(Path(out) / "noise.png", shot["clean"], shot["depth"],
-                               shot["labels"])
+                               shot["labels"], table)
 
 
 def cmd_dataset(args) -> None:
@@ -140,9 +141,11 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-minutes", type=float, default=None, help="training time budget")
     p.add_argument("--ema-decay", type=float, default=None,
                    help="per-step decay of the weight average that is validated (0 = off)")
-    p.add_argument("--near-rim-weight", type=float, default=None,
-                   help="sampling weight of training images with a box top within 2 cm of "
-                        "the rim (default 2.5; 1 = uniform)")
+    p.add_argument("--near-boundary-weight", "--near-rim-weight", type=float, default=None,
+                   dest="near_boundary_weight",
+                   help="sampling weight of training images with an object within 2 cm of "
+                        "the task's inside/partly-inside boundary, e.g. a box top near the "
+                        "rim (default 2.5; 1 = uniform)")
     p.add_argument("--aug-noise", type=float, default=None,
                    help="re-drawn training noise per image: up to this many times the "
                         "sensor's own (default 1; 0 = off)")
@@ -170,7 +173,7 @@ def resolve_train_config(args: argparse.Namespace):
     fields = {"epochs": "epochs", "batch_size": "batch_size", "lr": "lr",
               "base_width": "base_width", "max_minutes": "max_minutes", "device": "device",
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
-              "channels_last": "channels_last", "near_rim_weight": "near_rim_weight",
+              "channels_last": "channels_last", "near_boundary_weight": "near_boundary_weight",
               "aug_noise": "aug_noise", "lovasz_weight": "lovasz_weight",
               "camera_intrinsics": "camera_intrinsics"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
@@ -227,9 +230,9 @@ def cmd_evaluate(args) -> None:
         print(f"  mistakes per hard case {hard['mistakes']}; all-correct on the "
               f"{hard['untagged_images']} images without one: "
               + ("-" if untagged is None else f"{untagged:.4f}"))
-        print("  right per rim gap: " + ", ".join(
+        print("  right per boundary gap: " + ", ".join(
             f"{e['bin']} {e['images'] - e['mistakes']}/{e['images']}"
-            for e in hard["by_rim_gap"]))
+            for e in hard["by_boundary_gap"]))
 
 
 def add_robustness_args(p: argparse.ArgumentParser) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,6 +45,9 @@ def _check_interval(owner: str, name: str, interval: tuple[float, float], lo: fl
 
 
 SHAPES = ("box", "cylinder")
+FIXTURES = ("open_box", "board")   # training/fixture.py FIXTURE_KINDS
+# How discovery describes a cluster, in its target region's terms (training/discover.py).
+DESCRIPTORS = ("inside", "outside", "partly_inside")
 NOISE_MODELS = ("kinect_v1",)   # noise: structured light; tof: a second, time-of-flight model
 
 
@@ -52,18 +56,31 @@ class SceneConfig:
     """The simulated place task (docs/interface.md §1) and its physics domain randomisation.
 
     Every range is drawn per episode (uniform); a range with min == max is a fixed value. The
-    fixture is an open-top container with a rectangular inner footprint, standing on a support
-    plane: the room floor, or the top of a table with the room floor below it.
+    fixture (``fixture``) is an open-top box with a rectangular inner footprint (``open_box``)
+    or a shelf board (``board``), standing on a support plane: the room floor, or the top of a
+    table with the room floor below it. Its target region (training/fixture.py ``Region``) is
+    where a successful placement ends: the open box's inner volume, the volume above a board.
     """
 
-    # The fixture (container), in its own frame: x and y along its walls, z up from its base.
+    fixture: str = "open_box"             # one of FIXTURES
+    # An open box, in its own frame: x and y along its walls, z up from its base.
     inner_size_x: tuple[float, float] = (1.0, 1.0)    # m, inner footprint along x
     inner_size_y: tuple[float, float] = (1.0, 1.0)    # m, inner footprint along y
     wall_height: tuple[float, float] = (0.25, 0.25)   # m, base to rim top
     wall_thickness: float = 0.02          # m
-    bottom_thickness: float = 0.02        # m, container floor slab
-    container_offset: float = 0.0         # m, base centre uniform in +-this along x and y
-    container_yaw_deg: tuple[float, float] = (-45.0, 45.0)   # square: 90 deg covers all yaws
+    bottom_thickness: float = 0.02        # m, the box's floor slab
+    # A board: width (x) and depth (y) of its top, its top's height above the support, its
+    # thickness, the height of the region above it, and the share of episodes in which it hangs
+    # on a wall behind it instead of standing on four legs. Its front edge is its -y side.
+    board_width: tuple[float, float] = (0.9, 0.9)           # m
+    board_depth: tuple[float, float] = (0.35, 0.35)         # m
+    board_height: tuple[float, float] = (0.8, 0.8)          # m
+    board_thickness: float = 0.025        # m
+    clearance: float = 0.4                # m
+    wall_mounted_share: float = 0.5
+    # Either kind's pose.
+    fixture_offset: float = 0.0           # m, base centre uniform in +-this along x and y
+    fixture_yaw_deg: tuple[float, float] = (-45.0, 45.0)     # a square repeats every 90 deg
     # The support plane's height (the room floor, or the table top), and an optional table.
     floor_height: tuple[float, float] = (-0.05, 0.05)        # m
     table_size: tuple[float, float] | None = None            # m (x, y) of the table top
@@ -82,14 +99,25 @@ class SceneConfig:
     object_mass: tuple[float, float] = (0.1, 2.0)            # kg
     friction: tuple[float, float] = (0.3, 1.0)
     restitution: tuple[float, float] = (0.0, 0.4)
-    # The release: object centres above the rim top, over an area reaching ``release_margin``
-    # beyond the inner footprint on every side (negative: strictly inside it).
-    release_above_rim: tuple[float, float] = (1.5, 1.5)      # m
+    # Bullet's rolling friction (m) of the objects; 0 leaves it off. Without it a cylinder on
+    # its side rolls on over a level floor until the episode's time runs out.
+    rolling_friction: float = 0.0
+    # The release. "drop": object centres ``release_height`` above the region's top, over an
+    # area reaching ``release_margin`` beyond its footprint on every side (negative: strictly
+    # inside it). "place": a gripper sets each object down over the region's front edge (-y),
+    # at a depth ``place_edge_offset`` inside it (negative: beyond it) and anywhere along it
+    # ``release_margin`` from its ends, its lowest point ``place_gap`` above the region's
+    # bottom, upright but for a ``place_tilt_deg`` pose error.
+    release_mode: str = "drop"
+    release_height: tuple[float, float] = (1.5, 1.5)         # m
     release_margin: float = 0.1           # m
-    # Axes of that area: "fixture" (along the container's walls) or "world" (the paper's
-    # scene: a square area fixed in the world while the container's yaw varies).
+    # Axes of that area: "fixture" (along the fixture's axes) or "world" (the paper's scene:
+    # a square area fixed in the world while the fixture's yaw varies).
     release_frame: str = "world"
     release_orientation: str = "random"   # random | upright (random yaw, object z up)
+    place_edge_offset: tuple[float, float] = (-0.05, 0.10)   # m
+    place_gap: tuple[float, float] = (0.0, 0.05)             # m
+    place_tilt_deg: tuple[float, float] = (0.0, 0.0)
     # Integration and the end of an episode.
     timestep: float = 1.0 / 240.0
     solver_iterations: int = 10
@@ -99,8 +127,16 @@ class SceneConfig:
     rest_hold_time: float = 0.25          # s every object must stay below both speeds
 
     @property
-    def max_wall_height(self) -> float:
-        return float(self.wall_height[1])
+    def height_scale(self) -> float:
+        """The network's height unit (m): the highest top of the fixture the spec draws."""
+        return float(self.board_height[1] if self.fixture == "board" else self.wall_height[1])
+
+    @property
+    def smallest_half_width(self) -> float:
+        """Half the narrowest footprint the spec draws (m)."""
+        sizes = ((self.board_width, self.board_depth) if self.fixture == "board"
+                 else (self.inner_size_x, self.inner_size_y))
+        return min(sizes[0][0], sizes[1][0]) / 2
 
     @property
     def shapes(self) -> dict[str, float]:
@@ -108,13 +144,21 @@ class SceneConfig:
 
     def validate(self) -> SceneConfig:
         o = "scene"
+        if self.fixture not in FIXTURES:
+            raise ConfigError(f"{o}.fixture = {self.fixture!r}: expected one of {FIXTURES}")
         _check_interval(o, "inner_size_x", self.inner_size_x, 0.1, 5.0)
         _check_interval(o, "inner_size_y", self.inner_size_y, 0.1, 5.0)
         _check_interval(o, "wall_height", self.wall_height, 0.05, 1.0)
         _check_range(o, "wall_thickness", self.wall_thickness, 0.002, 0.2)
         _check_range(o, "bottom_thickness", self.bottom_thickness, 0.002, 0.1)
-        _check_range(o, "container_offset", self.container_offset, 0.0, 2.0)
-        _check_interval(o, "container_yaw_deg", self.container_yaw_deg, -180.0, 180.0)
+        _check_interval(o, "board_width", self.board_width, 0.1, 5.0)
+        _check_interval(o, "board_depth", self.board_depth, 0.1, 5.0)
+        _check_interval(o, "board_height", self.board_height, 0.05, 3.0)
+        _check_range(o, "board_thickness", self.board_thickness, 0.005, 0.2)
+        _check_range(o, "clearance", self.clearance, 0.05, 3.0)
+        _check_range(o, "wall_mounted_share", self.wall_mounted_share, 0.0, 1.0)
+        _check_range(o, "fixture_offset", self.fixture_offset, 0.0, 2.0)
+        _check_interval(o, "fixture_yaw_deg", self.fixture_yaw_deg, -180.0, 180.0)
         _check_interval(o, "floor_height", self.floor_height, -1.0, 1.0)
         if self.table_size is not None:
             if not isinstance(self.table_size, (tuple, list)) or len(self.table_size) != 2:
@@ -133,8 +177,15 @@ class SceneConfig:
         _check_interval(o, "object_mass", self.object_mass, 0.01, 100.0)
         _check_interval(o, "friction", self.friction, 0.0, 5.0)
         _check_interval(o, "restitution", self.restitution, 0.0, 1.0)
-        _check_interval(o, "release_above_rim", self.release_above_rim, 0.0, 5.0)
+        _check_range(o, "rolling_friction", self.rolling_friction, 0.0, 0.1)
+        if self.release_mode not in ("drop", "place"):
+            raise ConfigError(f"{o}.release_mode = {self.release_mode!r}: "
+                              "expected one of ('drop', 'place')")
+        _check_interval(o, "release_height", self.release_height, 0.0, 5.0)
         _check_range(o, "release_margin", self.release_margin, -0.5, 3.0)
+        _check_interval(o, "place_edge_offset", self.place_edge_offset, -0.5, 0.5)
+        _check_interval(o, "place_gap", self.place_gap, 0.0, 0.5)
+        _check_interval(o, "place_tilt_deg", self.place_tilt_deg, 0.0, 45.0)
         if self.release_frame not in ("fixture", "world"):
             raise ConfigError(f"{o}.release_frame = {self.release_frame!r}: "
                               "expected one of ('fixture', 'world')")
@@ -161,11 +212,15 @@ class SceneConfig:
 
     def _validate_table(self, o: str) -> None:
         """The fixture must stand on the table wherever its size and the table's offset are
-        drawn. The table turns with the container, so this is per axis of the container; an
+        drawn. The table turns with the fixture, so this is per axis of the fixture; an
         offset of up to ``table_offset`` on each axis reaches sqrt(2) x that."""
         reach = math.sqrt(2.0) * self.table_offset
-        for k, (axis, inner) in enumerate((("x", self.inner_size_x), ("y", self.inner_size_y))):
-            need = inner[1] / 2 + self.wall_thickness + reach
+        board = self.fixture == "board"
+        sizes = ((self.board_width, self.board_depth) if board
+                 else (self.inner_size_x, self.inner_size_y))
+        edge = 0.0 if board else self.wall_thickness
+        for k, (axis, inner) in enumerate(zip("xy", sizes)):
+            need = inner[1] / 2 + edge + reach
             half = self.table_size[k] / 2
             if need > half:
                 raise ConfigError(
@@ -190,6 +245,9 @@ class CameraConfig:
     elevation_deg: tuple[float, float] = (40.0, 65.0)  # above the horizontal; 90 = straight down
     azimuth_deg: tuple[float, float] = (0.0, 360.0)   # around the fixture, from its x axis
     roll_deg: tuple[float, float] = (0.0, 0.0)        # about the optical axis
+    # "world": azimuth from the world's x axis (the paper's scene: cameras anywhere around);
+    # "fixture": from the fixture's x axis, so a range can keep cameras in front of a shelf.
+    azimuth_frame: str = "world"
     target_offset: float = 0.1            # m, look-at point within this of the fixture centre
     # What camera_info reports may differ from the true camera (calibration error): per frame
     # fx = fy reported off by up to +-this fraction, cx and cy by up to +-this many pixels.
@@ -212,6 +270,9 @@ class CameraConfig:
         _check_interval(o, "azimuth_deg", self.azimuth_deg, -360.0, 720.0)
         _check_interval(o, "roll_deg", self.roll_deg, -180.0, 180.0)
         _check_range(o, "target_offset", self.target_offset, 0.0, 1.0)
+        if self.azimuth_frame not in ("world", "fixture"):
+            raise ConfigError(f"{o}.azimuth_frame = {self.azimuth_frame!r}: "
+                              "expected one of ('world', 'fixture')")
         _check_range(o, "info_focal_error", self.info_focal_error, 0.0, 0.2)
         _check_range(o, "info_principal_error_px", self.info_principal_error_px, 0.0,
                      min(self.width, self.height) / 8)
@@ -386,6 +447,16 @@ class DiscoverConfig:
     # min_samples scales with the data so density means the same at 2,000 and 10,000 episodes.
     min_samples_fraction: float = 0.005
     min_samples_floor: int = 10
+    # Discovery names each cluster in the target region's terms (DESCRIPTORS); this
+    # maps those descriptors to the task's words, and names the fixture's class. The defaults
+    # are the default task's words (docs/interface.md §2, §3), like every default here.
+    outcome_names: tuple[tuple[str, str], ...] = (
+        ("inside", "success"), ("outside", "fell_outside"), ("partly_inside", "stuck_on_rim"))
+    fixture_name: str = "container"
+    # The geometric yardstick's "inside" (discover.py): besides the centre of mass over the
+    # footprint, "top": the object's top below the region's top (an open box: walls hold the
+    # sides); "footprint": all of the object over the footprint (a board: nothing holds them).
+    yardstick_inside: str = "top"
 
     def min_samples(self, n_objects: int) -> int:
         return max(self.min_samples_floor, round(self.min_samples_fraction * n_objects))
@@ -394,7 +465,28 @@ class DiscoverConfig:
         _check_range("discover", "eps", self.eps, 1e-4, 10.0)
         _check_range("discover", "min_samples_fraction", self.min_samples_fraction, 0.0, 0.5)
         _check_int("discover", "min_samples_floor", self.min_samples_floor, 1, 10000)
+        self._validate_names()
+        if self.yardstick_inside not in ("top", "footprint"):
+            raise ConfigError(f"discover.yardstick_inside = {self.yardstick_inside!r}: "
+                              "expected one of ('top', 'footprint')")
         return self
+
+    def _validate_names(self) -> None:
+        names = dict(self.outcome_names)
+        unknown = sorted(set(names) - set(DESCRIPTORS))
+        words = [*names.values(), self.fixture_name]
+        if unknown or len(names) != len(self.outcome_names):
+            raise ConfigError(f"discover.outcome_names: keys {unknown or list(names)} must be "
+                              f"distinct descriptors from {DESCRIPTORS}")
+        bad = [w for w in words if not isinstance(w, str)
+               or not re.fullmatch(r"[a-z][a-z0-9_]*", w) or w == "background"]
+        if bad or len(set(words)) != len(words):
+            raise ConfigError(f"discover.outcome_names / fixture_name: {words} must be distinct "
+                              "lower-case words (a-z, 0-9, _), none of them 'background'")
+
+    def outcome_name(self, descriptor: str) -> str:
+        """The task's word for a descriptor (the descriptor itself when the spec has none)."""
+        return dict(self.outcome_names).get(descriptor, descriptor)
 
 
 @dataclass(frozen=True)
@@ -444,7 +536,7 @@ class DatasetConfig:
                     f"camera.distance = {list(self.camera.distance)} m: the {label} measures "
                     f"{sensor_near}-{sensor_far} m ({section}.min_range, {section}.max_range), "
                     "so it could not see the fixture from every distance")
-        smallest_half = min(self.scene.inner_size_x[0], self.scene.inner_size_y[0]) / 2
+        smallest_half = self.scene.smallest_half_width
         if self.camera.target_offset > smallest_half:
             raise ConfigError(
                 f"camera.target_offset = {self.camera.target_offset} m: the look-at point "
@@ -457,14 +549,20 @@ def to_dict(cfg: Any) -> dict:
 
 
 def _legacy_scene(data: dict) -> dict:
-    """Scene fields of configs saved before the scene spec (a square container, fixed wall
-    height and release height, an absolute release offset) in today's terms."""
+    """Scene fields of configs saved before the scene spec (a square open box, fixed wall
+    height and release height, an absolute release offset, fields named after the default
+    task's container) in today's terms."""
     data = dict(data)
+    for old, new in (("container_offset", "fixture_offset"),
+                     ("container_yaw_deg", "fixture_yaw_deg"),
+                     ("release_above_rim", "release_height")):
+        if old in data:
+            data.setdefault(new, data.pop(old))
     if "container_inner_size" in data:
         side = data.pop("container_inner_size")
         data.setdefault("inner_size_x", (side, side))
         data.setdefault("inner_size_y", (side, side))
-    for name in ("wall_height", "release_above_rim"):
+    for name in ("wall_height", "release_height"):
         if isinstance(data.get(name), (int, float)):
             data[name] = (data[name], data[name])
     if "release_offset" in data:
@@ -548,11 +646,12 @@ class TrainConfig:
     ema_decay: float = 0.998              # per step; 0 turns the average off
     max_minutes: float = 58.0             # stop (and keep the best) when this budget is spent
     class_weight_power: float = 0.3       # weights = (1 / class frequency) ** power
-    # Sampling weight of training images with a box top within 2 cm of the rim (hard_cases.py:
-    # where most mistakes are); 1 = uniform epochs (a permutation), > 1 draws them more often
-    # (with replacement). 2.5 on the quick profile: near-rim mistakes 11 -> 8 (validation) and
-    # 34 -> 27 (seed-1 set), the others unchanged.
-    near_rim_weight: float = 2.5
+    # Sampling weight of training images tagged near_boundary (hard_cases.py: an object within
+    # 2 cm of the task's inside / partly-inside boundary, where most mistakes are); 1 = uniform
+    # epochs (a permutation), > 1 draws them more often (with replacement). 2.5 on the quick
+    # profile of the default task: near-rim mistakes 11 -> 8 (validation) and 34 -> 27 (seed-1
+    # set), the others unchanged.
+    near_boundary_weight: float = 2.5
     augment: bool = True
     # Re-drawn axial noise per training image: U(0, aug_noise) x the sensor's own noise at the
     # working size (train.SENSOR_NOISE_PER_Z2). Before model 0.1.5 it was ~7x the sensor's.
@@ -596,7 +695,7 @@ class TrainConfig:
         _check_range(o, "ema_decay", self.ema_decay, 0.0, 0.99999)
         _check_range(o, "max_minutes", self.max_minutes, 0.01, 10_000)
         _check_range(o, "class_weight_power", self.class_weight_power, 0.0, 2.0)
-        _check_range(o, "near_rim_weight", self.near_rim_weight, 1.0, 100.0)
+        _check_range(o, "near_boundary_weight", self.near_boundary_weight, 1.0, 100.0)
         _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
         _check_range(o, "lovasz_weight", self.lovasz_weight, 0.0, 100.0)
         _check_int(o, "threads", self.threads, 1, 256)
@@ -611,9 +710,10 @@ class TrainConfig:
 
     @property
     def model_args(self) -> dict:
-        from task_outcome_ros.labels import NUM_CLASSES
+        from task_outcome_ros.labels import DEFAULT_TABLE
         from task_outcome_ros.model import IN_CHANNELS
 
-        return {"in_channels": IN_CHANNELS, "num_classes": NUM_CLASSES,
+        # The default task's class count; train.py sets the dataset's own table's.
+        return {"in_channels": IN_CHANNELS, "num_classes": DEFAULT_TABLE.num_classes,
                 "base_width": self.base_width, "levels": self.levels,
                 "decoder_convs": self.decoder_convs, "max_width": self.max_width}

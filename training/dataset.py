@@ -1,10 +1,9 @@
 """Stage 4: the dataset on disk (manifest + split) and its torch view for training.
 
 On disk (``<run>/``): ``images/NNNNNN_depth.png`` (16-bit, millimetres, 0 = invalid, like a
-Kinect's 16UC1) and ``images/NNNNNN_labels.png`` (ids of docs/interface.md §3, 255 = no depth),
-plus
-``manifest.json``: per image its seeds, camera, per-object outcomes, the outcomes present by
-the presence rule and the split (95/5 by episode).
+Kinect's 16UC1) and ``images/NNNNNN_labels.png`` (ids of the task's label table, 255 = no
+depth), plus ``manifest.json``: the label table, and per image its seeds, camera, per-object
+outcomes, the outcomes present by the presence rule and the split (95/5 by episode).
 
 Training never decodes PNGs in its loop: ``build_cache`` shrinks every image once to the
 network's working size with the inference code's own ``resize_depth`` (so training sees exactly
@@ -20,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from task_outcome_ros.labels import IGNORE, NUM_CLASSES
+from task_outcome_ros.labels import IGNORE, LabelTable
 from training.config import DatasetConfig, dataset_config_from_dict, load_json, save_json, to_dict
 from training.seeding import STAGE_STREAMS
 
@@ -36,7 +35,9 @@ def split_episodes(n_episodes: int, val_fraction: float, seed: int) -> dict[str,
     return {"train": sorted(order[n_val:].tolist()), "val": sorted(order[:n_val].tolist())}
 
 
-def write_manifest(run_dir: Path, cfg: DatasetConfig, records: list[dict]) -> dict:
+def write_manifest(run_dir: Path, cfg: DatasetConfig, records: list[dict],
+                   table: LabelTable) -> dict:
+    """manifest.json: the images with their split, the config and the label table."""
     split = split_episodes(len(records), cfg.val_fraction, cfg.seed)
     which = {i: name for name, ids in split.items() for i in ids}
     images = []
@@ -48,6 +49,7 @@ def write_manifest(run_dir: Path, cfg: DatasetConfig, records: list[dict]) -> di
     # manifest byte-identical for any --workers (and across resumes with another count).
     config = {k: v for k, v in to_dict(cfg).items() if k != "workers"}
     manifest = {"seed": cfg.seed, "n_images": len(images), "config": config,
+                "label_table": table.to_dict(),
                 "split_sizes": {k: len(v) for k, v in split.items()}, "images": images}
     save_json(Path(run_dir) / "manifest.json", manifest)
     return manifest
@@ -55,6 +57,13 @@ def write_manifest(run_dir: Path, cfg: DatasetConfig, records: list[dict]) -> di
 
 def load_manifest(run_dir: Path) -> dict:
     return load_json(Path(run_dir) / "manifest.json")
+
+
+def manifest_table(manifest: dict) -> LabelTable:
+    """The label table a manifest carries (manifests written before: the default task's)."""
+    from training.discover import table_of
+
+    return table_of(manifest)
 
 
 def downsample_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -70,14 +79,16 @@ def downsample_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
     w, h = size
     H, W = labels.shape
+    measured = labels[labels != IGNORE]
+    n_classes = int(measured.max()) + 1 if measured.size else 1  # any task's table
     if H % h or W % w:
         shares = np.stack([cv2.resize((labels == c).astype(np.float32), (w, h),
                                       interpolation=cv2.INTER_AREA)
-                           for c in range(NUM_CLASSES)])
+                           for c in range(n_classes)])
     else:
         fy, fx = H // h, W // w
         blocks = labels.reshape(h, fy, w, fx)
-        shares = np.stack([(blocks == c).sum(axis=(1, 3)) for c in range(NUM_CLASSES)])
+        shares = np.stack([(blocks == c).sum(axis=(1, 3)) for c in range(n_classes)])
     out = shares.argmax(axis=0).astype(np.uint8)
     out[shares.max(axis=0) <= 0] = IGNORE
     return out

@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 
 from task_outcome_ros.bag_io import BagToolError
-from task_outcome_ros.labels import OUTCOME_NAMES
 from task_outcome_ros.live_bag import run_live
 from task_outcome_ros.topics import STATUS_TOPIC
 
@@ -34,17 +33,21 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 BAG_RATE_HZ = 5.0
 
 
-def make_data(out: Path, episodes: int, seed: int) -> Path:
-    """Steps 1-2: a small dataset run and its bag (a finished run resumes to nothing; one made
-    with other options is refused, naming them)."""
+def make_data(out: Path, episodes: int, seed: int, task: str = "default",
+              frames: int = 40) -> Path:
+    """Steps 1-2: a small dataset run of the task and a bag of its first ``frames`` images (a
+    finished run resumes to nothing; one made with other options is refused, naming them).
+    Discovery needs enough episodes to find every outcome of a task (a shelf: ~600), so the
+    bag may hold fewer frames than the run has episodes."""
     from training.export_bag import export_bag
 
     data = out / "data"
     cmd = [sys.executable, "-m", "training", "dataset", "--out", str(data), "--episodes",
-           str(episodes), "--seed", str(seed), "--chunk-size", "10"]
+           str(episodes), "--seed", str(seed), "--chunk-size", "10", "--scene", task]
     subprocess.run(cmd, check=True)
     bag = out / "input_bag"
-    export_bag(data, bag, split="all", rate_hz=BAG_RATE_HZ, encoding="32FC1", overwrite=True)
+    export_bag(data, bag, split="all", limit=frames, rate_hz=BAG_RATE_HZ, encoding="32FC1",
+               overwrite=True)
     return bag
 
 
@@ -73,7 +76,7 @@ def contact_sheet(path: Path, received: dict, ground_truth: dict, scores: dict,
         ax.imshow(rgb)
         status = received[STATUS_TOPIC].get(frame["stamp_ns"])
         said = status[1].status[0].message if status else "(no status)"
-        truth = ",".join(k for k in OUTCOME_NAMES if frame["present"][k]) or "none"
+        truth = ",".join(k for k, here in frame["present"].items() if here) or "none"
         ok = frame["stamp_ns"] not in wrong
         ax.set_title(f"ep {frame['episode']}: node says {said}\ntruth {truth}", fontsize=8,
                      color="black" if ok else "red")
@@ -84,18 +87,23 @@ def contact_sheet(path: Path, received: dict, ground_truth: dict, scores: dict,
     plt.close(fig)
 
 
-def run_demo(out: Path, episodes: int = 40, seed: int = 2026, timeout_s: float = 60.0) -> dict:
+def run_demo(out: Path, episodes: int = 40, seed: int = 2026, timeout_s: float = 60.0,
+             task: str = "default", frames: int = 40) -> dict:
+    """The demo on a shipped task: its spec's data, its model (``model_path:=<task>``)."""
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    print(f"[demo] 1-2/6 simulating {episodes} episodes (seed {seed}) and exporting a bag")
-    bag = make_data(out, episodes, seed)
+    print(f"[demo] 1-2/6 simulating {episodes} episodes of task {task!r} (seed {seed}) and "
+          f"exporting a bag of {min(frames, episodes)} frames")
+    bag = make_data(out, episodes, seed, task, frames)
     live = run_live(bag, out, rate_hz_note=f" at {BAG_RATE_HZ:g} Hz", timeout_s=timeout_s,
+                    node_args=["-p", f"model_path:={task}"],
                     log=lambda text: print(f"[demo] 3-4/6 {text}"),
                     then=lambda env: place_and_check(bag, env))
     contact_sheet(out / "contact_sheet.png", live.received, live.ground_truth, live.scores)
     latency = live.latencies_ms()
     scores = live.scores
     summary = {
+        "task": task,
         "frames_sent": live.frames_sent,
         "frames_answered": len(live.received[STATUS_TOPIC]),
         "image_all_correct": scores["image_all_correct"],
@@ -126,13 +134,21 @@ def place_and_check(bag: Path, env: dict[str, str], places: int = 5) -> None:
 def add_demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=DEFAULT_OUT,
                    help="demo folder (default: %(default)s)")
-    p.add_argument("--episodes", type=int, default=40, help="episodes to simulate (default 40)")
+    p.add_argument("--task", default="default",
+                   help="a shipped task: its spec makes the data, its model answers "
+                        "(default: default; also tote, shelf)")
+    p.add_argument("--episodes", type=int, default=None,
+                   help="episodes to simulate (default 40; 600 for a task other than the "
+                        "default one, so that discovery finds all its outcomes)")
+    p.add_argument("--frames", type=int, default=40,
+                   help="frames of the bag: the run's first ones (default 40)")
     p.add_argument("--seed", type=int, default=2026, help="their seed (default 2026)")
 
 
 def demo_main(args: argparse.Namespace) -> int:
     try:
-        run_demo(args.out, args.episodes, args.seed)
+        episodes = args.episodes or (40 if args.task == "default" else 600)
+        run_demo(args.out, episodes, args.seed, task=args.task, frames=args.frames)
     except (RuntimeError, subprocess.SubprocessError, BagToolError) as exc:
         print(f"[demo] failed: {exc}", file=sys.stderr)
         return 1

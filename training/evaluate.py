@@ -17,61 +17,67 @@ from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from task_outcome_ros.inference import OutcomeSegmenter
 from task_outcome_ros.labels import (
-    CLASS_NAMES,
     IGNORE,
-    NUM_CLASSES,
-    OUTCOME_NAMES,
     PRESENCE_MIN_PIXELS,
+    LabelTable,
     outcomes_present,
     presence_scores,
     presence_threshold,
 )
 from training.config import save_json
-from training.dataset import load_manifest
+from training.dataset import load_manifest, manifest_table
 from training.hard_cases import (
-    NEAR_RIM_M,
-    RIM_GAP_BINS_MM,
+    GAP_BINS_MM,
+    NEAR_BOUNDARY_M,
     TAGS,
     HardCase,
     episode_hard_cases,
-    rim_gap_bin,
-    rim_gap_bin_names,
+    gap_bin,
+    gap_bin_names,
 )
 from training.render import read_pair, reported_camera
 
 
-def confusion(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
+def confusion(truth: np.ndarray, pred: np.ndarray, num_classes: int) -> np.ndarray:
     keep = truth != IGNORE
-    return np.bincount(truth[keep].astype(np.int64) * NUM_CLASSES + pred[keep],
-                       minlength=NUM_CLASSES ** 2).reshape(NUM_CLASSES, NUM_CLASSES)
+    return np.bincount(truth[keep].astype(np.int64) * num_classes + pred[keep],
+                       minlength=num_classes ** 2).reshape(num_classes, num_classes)
+
+
+def same_task(model: LabelTable, data: LabelTable, model_path, data_dir) -> None:
+    """A model can only be scored on data labelled with its own classes."""
+    if model.classes != data.classes:
+        raise ValueError(f"model {model_path} knows the classes {list(model.classes)}, but "
+                         f"{data_dir} is labelled with {list(data.classes)}: evaluate a model "
+                         "of this task")
 
 
 def hard_case_report(rows: list[dict], cases: dict[int, HardCase] | None) -> dict:
     """Mistakes per hard-case tag (hard_cases.py), the all-correct rate of untagged images and
-    the all-correct rate per rim-gap bin."""
+    the all-correct rate per boundary-gap bin."""
     if cases is None:
         return {}
     tagged = {r["episode"]: cases[r["episode"]].tags for r in rows}
     untagged = [r for r in rows if not tagged[r["episode"]]]
     mistakes = [r for r in rows if not r["correct"]]
-    by_gap = [{"bin": name, "images": 0, "mistakes": 0} for name in rim_gap_bin_names()]
+    by_gap = [{"bin": name, "images": 0, "mistakes": 0} for name in gap_bin_names()]
     for r in rows:
-        entry = by_gap[rim_gap_bin(cases[r["episode"]].rim_gap_m)]
+        entry = by_gap[gap_bin(cases[r["episode"]].gap_m)]
         entry["images"] += 1
         entry["mistakes"] += not r["correct"]
     for entry in by_gap:
         entry["image_all_correct"] = (1.0 - entry["mistakes"] / entry["images"]
                                       if entry["images"] else None)
     return {"hard_cases": {
-        "near_rim_m": NEAR_RIM_M,
+        "near_boundary_m": NEAR_BOUNDARY_M,
         "images": {t: sum(t in tagged[r["episode"]] for r in rows) for t in TAGS},
         "mistakes": {**{t: sum(t in tagged[r["episode"]] for r in mistakes) for t in TAGS},
                      "untagged": sum(not tagged[r["episode"]] for r in mistakes)},
         "untagged_images": len(untagged),
         "untagged_image_all_correct": (sum(r["correct"] for r in untagged) / len(untagged)
                                        if untagged else None),
-        "rim_gap_bins_mm": list(RIM_GAP_BINS_MM),
-        "by_rim_gap": by_gap,
+        "gap_bins_mm": list(GAP_BINS_MM),
+        "by_boundary_gap": by_gap,
     }}
 
 
@@ -92,7 +98,10 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         raise ValueError(f"{data_dir}: no images in split {split!r}")
     seg = OutcomeSegmenter(model_path, presence_min_pixels=presence_min_pixels, backend=backend,
                            fragment_max_pixels=fragment_max_pixels)
-    conf = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
+    table = seg.table
+    same_task(table, manifest_table(manifest), seg.model_path, data_dir)
+    k = table.num_classes
+    conf = np.zeros((k, k), np.int64)
     truth_p, pred_p, rows, times = [], [], [], []
     # What camera_info would carry for each image (None: evaluated without it).
     cameras = {im["episode"]: Intrinsics.from_record(reported_camera(im)) if camera_info else None
@@ -101,10 +110,10 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         depth, labels = read_pair(data_dir, im["episode"])
         result = seg.segment(depth, cameras[im["episode"]])
         times.append(result.inference_ms)
-        t = outcomes_present(labels, presence_min_pixels)
-        truth_p.append([t[n] for n in OUTCOME_NAMES])
-        pred_p.append([result.present[n] for n in OUTCOME_NAMES])
-        conf += confusion(labels, result.labels)
+        t = outcomes_present(labels, presence_min_pixels, table)
+        truth_p.append([t[n] for n in table.outcome_names])
+        pred_p.append([result.present[n] for n in table.outcome_names])
+        conf += confusion(labels, result.labels, k)
         rows.append({"episode": im["episode"], "truth": t, "pred": result.present,
                      "correct": t == result.present})
     truth_arr, pred_arr = np.array(truth_p, bool), np.array(pred_p, bool)
@@ -116,9 +125,10 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         "data": str(data_dir),
         "model": str(seg.model_path),
         "backend": seg.backend,
-        **presence_scores(truth_arr, pred_arr),
+        **presence_scores(truth_arr, pred_arr, table.outcome_names),
+        "label_table": table.to_dict(),
         "pixel_miou": float(iou.mean()),
-        "iou": {CLASS_NAMES[c]: round(float(iou[c]), 5) for c in range(NUM_CLASSES)},
+        "iou": {name: round(float(iou[c]), 5) for c, name in enumerate(table.classes)},
         "presence_min_pixels": presence_min_pixels,
         "presence_threshold_pixels": presence_threshold(h, w, presence_min_pixels),
         "fragment_max_pixels": fragment_max_pixels,
@@ -134,15 +144,15 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_json(out_dir / "eval.json", report)
-    plot_confusion(out_dir / "confusion.png", conf)
+    plot_confusion(out_dir / "confusion.png", conf, table)
     plot_examples(out_dir / "eval_examples.png", data_dir, rows, seg, cameras)
     if "hard_cases" in report:
-        plot_rim_gap(out_dir / "rim_gap.png", report["hard_cases"]["by_rim_gap"],
-                     report["image_all_correct"])
+        plot_boundary_gap(out_dir / "boundary_gap.png",
+                          report["hard_cases"]["by_boundary_gap"], report["image_all_correct"])
     return report
 
 
-def plot_confusion(path: Path, conf: np.ndarray) -> None:
+def plot_confusion(path: Path, conf: np.ndarray, table: LabelTable) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -151,12 +161,12 @@ def plot_confusion(path: Path, conf: np.ndarray) -> None:
     norm = conf / np.maximum(1, conf.sum(1, keepdims=True))
     fig, ax = plt.subplots(figsize=(6, 5), dpi=100)
     im = ax.imshow(norm, cmap="Blues", vmin=0, vmax=1)
-    for i in range(NUM_CLASSES):
-        for j in range(NUM_CLASSES):
+    for i in range(table.num_classes):
+        for j in range(table.num_classes):
             ax.text(j, i, f"{norm[i, j]:.3f}", ha="center", va="center", fontsize=8,
                     color="white" if norm[i, j] > 0.5 else "black")
-    ax.set_xticks(range(NUM_CLASSES), CLASS_NAMES, rotation=30, ha="right")
-    ax.set_yticks(range(NUM_CLASSES), CLASS_NAMES)
+    ax.set_xticks(range(table.num_classes), table.classes, rotation=30, ha="right")
+    ax.set_yticks(range(table.num_classes), table.classes)
     ax.set_xlabel("predicted")
     ax.set_ylabel("true (pixels with depth)")
     ax.set_title("pixel confusion, row-normalised")
@@ -166,8 +176,9 @@ def plot_confusion(path: Path, conf: np.ndarray) -> None:
     plt.close(fig)
 
 
-def plot_rim_gap(path: Path, by_gap: list[dict], overall: float) -> None:
-    """All-correct per rim-gap bin (hard_cases.py), with image counts: where the errors are."""
+def plot_boundary_gap(path: Path, by_gap: list[dict], overall: float) -> None:
+    """All-correct per boundary-gap bin (hard_cases.py), with image counts: where the errors
+    are."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -183,9 +194,10 @@ def plot_rim_gap(path: Path, by_gap: list[dict], overall: float) -> None:
     ax.axhline(overall, color="k", linestyle="--", linewidth=1,
                label=f"all images: {overall:.3f}")
     ax.set_ylim(0, 1.08)
-    ax.set_xlabel("rim gap: smallest |top - rim| of the objects over the container")
+    ax.set_xlabel("boundary gap: the smallest distance of an object over the fixture from the "
+                  "inside / partly-inside boundary")
     ax.set_ylabel("image all-correct")
-    ax.set_title("Where the mistakes are: images by how close a box top is to the rim")
+    ax.set_title("Where the mistakes are: images by how close an object is to the boundary")
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
@@ -215,9 +227,9 @@ def plot_examples(path: Path, data_dir: Path, rows: list[dict], seg: OutcomeSegm
         row[0].imshow(depth_to_grey(depth), cmap="gray")
         row[0].set_title(f"episode {r['episode']} " + ("OK" if r["correct"] else "MISTAKE"),
                          fontsize=9, color="black" if r["correct"] else "red")
-        row[1].imshow(colourise(labels))
+        row[1].imshow(colourise(labels, seg.table))
         row[1].set_title("truth: " + names(r["truth"]), fontsize=8)
-        row[2].imshow(colourise(pred))
+        row[2].imshow(colourise(pred, seg.table))
         row[2].set_title("predicted: " + names(r["pred"]), fontsize=8)
         row[3].imshow(wrong, cmap="Reds")
         row[3].set_title(f"wrong pixels: {int(wrong.sum())}", fontsize=8)

@@ -23,7 +23,7 @@ from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.cli_args import positive_float, positive_int
 from task_outcome_ros.ground_truth import GROUND_TRUTH_FILE
 from task_outcome_ros.labels import PRESENCE_MIN_PIXELS
-from training.dataset import load_manifest
+from training.dataset import load_manifest, manifest_table
 from training.render import image_paths, read_pair, reported_camera
 
 # 2023-11-14T22:13:20Z. Fixed rather than the wall clock, so exports are reproducible.
@@ -108,7 +108,7 @@ def export_bag(run_dir: Path, bag: Path | None = None, *, split: str = "val",
              "camera_info_topic": info_topic, "frame_id": frame_id, "encoding": encoding,
              "storage": storage, "rate_hz": rate_hz, "epoch_ns": EPOCH_NS,
              "presence_min_pixels": PRESENCE_MIN_PIXELS, "n_frames": len(frames),
-             "frames": frames}
+             "label_table": manifest_table(manifest).to_dict(), "frames": frames}
     (bag / GROUND_TRUTH_FILE).write_text(json.dumps(truth, indent=1) + "\n")
     return truth
 

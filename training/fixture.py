@@ -1,9 +1,11 @@
-"""The fixture of one episode: the container (and the table under it) as drawn from the spec.
+"""The fixture of one episode (an open box or a shelf board, maybe on a table), as drawn from
+the spec.
 
-A scene spec gives ranges (footprint, wall height, pose, table); each episode draws one
-concrete ``Fixture``, records it in its simulation result, and every later stage (geometry,
-discovery, rendering, hard cases) rebuilds it from that record, so physics, labels and
-measurements can never disagree about the geometry.
+A scene spec gives the fixture's kind and ranges (footprint, heights, pose, table); each
+episode draws one concrete fixture (``Fixture``, an open box, or ``Board``), records it in its
+simulation result, and every later stage (geometry, discovery, rendering, hard cases)
+rebuilds it from that record, so physics, labels and measurements can never disagree about
+the geometry.
 """
 
 from __future__ import annotations
@@ -36,18 +38,28 @@ class Table:
 
 
 @dataclass(frozen=True)
-class Fixture:
-    """An open-top container with a rectangular inner footprint, standing on the support."""
+class Region:
+    """The target region of a task in its fixture's frame: where a successful placement ends.
 
-    half_x: float            # m, inner half extents
+    A box: footprint half extents, bottom and top heights above the fixture's base, and the
+    thickness of the fixture's edge around the footprint (an open box's wall, a board's own
+    thickness), the unit discovery measures "beyond the edge" in."""
+
+    half_x: float
     half_y: float
-    wall_height: float       # m, base to rim top
-    wall_thickness: float
-    bottom_thickness: float
+    bottom: float
+    top: float
+    edge: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class PlacedFixture:
+    """What every fixture kind shares: its pose on the support, the support's tilt, a table."""
+
     x: float                 # m, base centre in the world
     y: float
     yaw: float               # rad, about z
-    base_z: float            # m, the support plane the container stands on
+    base_z: float            # m, the support plane the fixture stands on
     table: Table | None = None
     # The support's tilt from level: this many degrees, about a horizontal axis at this
     # azimuth. Simulation and geometry work in the support's frame (z normal to it), so a tilt
@@ -55,6 +67,8 @@ class Fixture:
     # the whole scene tilted.
     tilt_deg: float = 0.0
     tilt_azimuth_deg: float = 0.0
+
+    kind = "fixture"
 
     def tilt_rotation(self) -> np.ndarray:
         """Support frame -> true (gravity-aligned) frame: the tilt about its horizontal axis."""
@@ -76,8 +90,79 @@ class Fixture:
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
-    def container_boxes(self) -> list[Box]:
-        """The container as five boxes (half extents, centre) in its own frame, base at z=0."""
+    def to_frame(self, points: np.ndarray) -> np.ndarray:
+        """World points (..., 3) -> the fixture frame (origin at its base centre)."""
+        c, s = np.cos(-self.yaw), np.sin(-self.yaw)
+        p = np.asarray(points, dtype=np.float64) - np.array([self.x, self.y, self.base_z])
+        return np.stack([c * p[..., 0] - s * p[..., 1], s * p[..., 0] + c * p[..., 1],
+                         p[..., 2]], -1)
+
+    def to_world_xy(self, offsets: np.ndarray, frame: str = "fixture") -> np.ndarray:
+        """(n, 2) horizontal offsets from the footprint's centre -> world x, y. ``frame``
+        "fixture": offsets along the fixture's axes; "world": along the world axes."""
+        offsets = np.asarray(offsets, dtype=np.float64)
+        if frame == "fixture" and self.yaw != 0.0:
+            c, s = math.cos(self.yaw), math.sin(self.yaw)
+            offsets = offsets @ np.array([[c, s], [-s, c]])
+        if self.x or self.y:
+            offsets = offsets + np.array([self.x, self.y])
+        return offsets
+
+    def to_world(self, local: np.ndarray) -> np.ndarray:
+        """A fixture-frame point -> world."""
+        return self.rotation @ np.asarray(local, float) + np.array([self.x, self.y, self.base_z])
+
+    def centre(self) -> np.ndarray:
+        """The world point cameras aim at (``aim_point`` in the fixture's frame)."""
+        return self.to_world(self.aim_point())
+
+    def aim_point(self) -> np.ndarray:
+        raise NotImplementedError
+
+    def region(self) -> Region:
+        raise NotImplementedError
+
+    def solid_boxes(self) -> list[Box]:
+        """The fixture's own solids (label: fixture), in its frame, base at z = 0."""
+        raise NotImplementedError
+
+    def background_boxes(self) -> list[Box]:
+        """Static solids that belong to the room (label: background), in the fixture's frame."""
+        return []
+
+    def shape_key(self) -> tuple:
+        """What the collision shapes depend on (not the pose, which is set per episode)."""
+        table = None if self.table is None else (self.table.half_x, self.table.half_y,
+                                                 self.table.top_z - self.table.floor_z)
+        return (self.kind, tuple(self.solid_boxes()), tuple(self.background_boxes()), table)
+
+    def to_record(self) -> dict:
+        return {**asdict(self), "kind": self.kind}
+
+
+@dataclass(frozen=True, kw_only=True)
+class Fixture(PlacedFixture):
+    """An open-top box with a rectangular inner footprint (``fixture: open_box``): its target
+    region is the inner volume, up to the walls' top."""
+
+    half_x: float            # m, inner half extents
+    half_y: float
+    wall_height: float       # m, base to the walls' top
+    wall_thickness: float
+    bottom_thickness: float
+
+    kind = "open_box"
+
+    def region(self) -> Region:
+        return Region(self.half_x, self.half_y, self.bottom_thickness, self.wall_height,
+                      self.wall_thickness)
+
+    def aim_point(self) -> np.ndarray:
+        """Halfway up the walls over the footprint's centre."""
+        return np.array([0.0, 0.0, self.wall_height / 2])
+
+    def solid_boxes(self) -> list[Box]:
+        """The open box as five boxes (half extents, centre): its bottom and four walls."""
         hx, hy, t, h = self.half_x, self.half_y, self.wall_thickness, self.wall_height
         ox, oy = hx + t, hy + t
         bottom = ((ox, oy, self.bottom_thickness / 2), (0.0, 0.0, self.bottom_thickness / 2))
@@ -89,30 +174,55 @@ class Fixture:
         ]
         return [bottom, *walls]
 
-    def to_frame(self, points: np.ndarray) -> np.ndarray:
-        """World points (..., 3) -> the fixture frame (origin at its base centre)."""
-        c, s = np.cos(-self.yaw), np.sin(-self.yaw)
-        p = np.asarray(points, dtype=np.float64) - np.array([self.x, self.y, self.base_z])
-        return np.stack([c * p[..., 0] - s * p[..., 1], s * p[..., 0] + c * p[..., 1],
-                         p[..., 2]], -1)
 
-    def to_world_xy(self, offsets: np.ndarray, frame: str = "fixture") -> np.ndarray:
-        """(n, 2) horizontal offsets from the footprint's centre -> world x, y. ``frame``
-        "fixture": offsets along the container's walls; "world": along the world axes."""
-        offsets = np.asarray(offsets, dtype=np.float64)
-        if frame == "fixture" and self.yaw != 0.0:
-            c, s = math.cos(self.yaw), math.sin(self.yaw)
-            offsets = offsets @ np.array([[c, s], [-s, c]])
-        if self.x or self.y:
-            offsets = offsets + np.array([self.x, self.y])
-        return offsets
+# A board's legs and the wall behind it (see Board).
+LEG_WIDTH = 0.04             # m, square legs
+BACK_WALL = (3.0, 0.05, 2.5)  # m: width, thickness, height of the room wall a board may hang on
 
-    def centre(self) -> np.ndarray:
-        """World point halfway up the walls over the footprint's centre (the cameras aim here)."""
-        return np.array([self.x, self.y, self.base_z + self.wall_height / 2])
 
-    def to_record(self) -> dict:
-        return asdict(self)
+@dataclass(frozen=True, kw_only=True)
+class Board(PlacedFixture):
+    """A shelf board (``fixture: board``): a slab whose top is ``height`` above the support,
+    standing on four legs or fixed to a wall behind it (``wall_mounted``). Its front edge is
+    the -y side. The target region is the volume above the board, ``clearance`` high."""
+
+    half_x: float            # m, half the board's width (x) and depth (y)
+    half_y: float
+    height: float            # m, support to the board's top
+    thickness: float
+    clearance: float         # m, height of the region above the board
+    wall_mounted: bool = False
+
+    kind = "board"
+
+    def region(self) -> Region:
+        return Region(self.half_x, self.half_y, self.height, self.height + self.clearance,
+                      self.thickness)
+
+    def aim_point(self) -> np.ndarray:
+        """Over the front edge, 0.6 of the way up to the board: the board's top, what stands
+        on it and the floor in front of it (where objects fall) all stay in view."""
+        return np.array([0.0, -self.half_y, 0.6 * self.height])
+
+    def solid_boxes(self) -> list[Box]:
+        t, h = self.thickness, self.height
+        board = ((self.half_x, self.half_y, t / 2), (0.0, 0.0, h - t / 2))
+        if self.wall_mounted:
+            return [board]
+        leg_half = ((LEG_WIDTH / 2, LEG_WIDTH / 2, (h - t) / 2))
+        inset = LEG_WIDTH / 2
+        legs = [(leg_half, (sx * (self.half_x - inset), sy * (self.half_y - inset), (h - t) / 2))
+                for sx in (-1, 1) for sy in (-1, 1)]
+        return [board, *legs]
+
+    def background_boxes(self) -> list[Box]:
+        if not self.wall_mounted:
+            return []
+        width, thick, tall = BACK_WALL
+        return [((width / 2, thick / 2, tall / 2), (0.0, self.half_y + thick / 2, tall / 2))]
+
+
+FIXTURE_KINDS = {"open_box": Fixture, "board": Board}   # by SceneConfig.fixture (FIXTURES)
 
 
 def axis_angle_rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
@@ -122,19 +232,23 @@ def axis_angle_rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     return np.eye(3) + math.sin(angle_rad) * k + (1 - math.cos(angle_rad)) * (k @ k)
 
 
-def fixture_from_record(record: dict) -> Fixture:
+def fixture_from_record(record: dict) -> PlacedFixture:
+    """The fixture an episode recorded (records without a kind are open boxes)."""
+    record = dict(record)
+    cls = FIXTURE_KINDS[record.pop("kind", "open_box")]
     table = record.get("table")
-    return Fixture(**{**record, "table": Table(**table) if table else None})
+    return cls(**{**record, "table": Table(**table) if table else None})
 
 
-def episode_fixture(episode: dict, scene: SceneConfig) -> Fixture:
+def episode_fixture(episode: dict, scene: SceneConfig) -> PlacedFixture:
     """The fixture an episode was simulated with. Episodes simulated before fixtures were
     recorded had the spec's one square container at the origin."""
     if "fixture" in episode:
         return fixture_from_record(episode["fixture"])
-    return Fixture(scene.inner_size_x[0] / 2, scene.inner_size_y[0] / 2, scene.wall_height[0],
-                   scene.wall_thickness, scene.bottom_thickness, 0.0, 0.0,
-                   float(episode["container_yaw"]), float(episode["floor_z"]))
+    return Fixture(half_x=scene.inner_size_x[0] / 2, half_y=scene.inner_size_y[0] / 2,
+                   wall_height=scene.wall_height[0], wall_thickness=scene.wall_thickness,
+                   bottom_thickness=scene.bottom_thickness, x=0.0, y=0.0,
+                   yaw=float(episode["container_yaw"]), base_z=float(episode["floor_z"]))
 
 
 def _uniform(rng: np.random.Generator, interval: tuple[float, float]) -> float:
@@ -144,13 +258,22 @@ def _uniform(rng: np.random.Generator, interval: tuple[float, float]) -> float:
 
 
 def draw_fixture(scene: SceneConfig, yaw: float, base_z: float,
-                 rng: np.random.Generator) -> Fixture:
-    """The episode's fixture: footprint, wall height and position from ``rng`` (its own
-    stream), yaw and support height as the episode drew them."""
-    half_x = _uniform(rng, scene.inner_size_x) / 2
-    half_y = _uniform(rng, scene.inner_size_y) / 2
-    wall_height = _uniform(rng, scene.wall_height)
-    offset = scene.container_offset
+                 rng: np.random.Generator) -> PlacedFixture:
+    """The episode's fixture: its geometry and position from ``rng`` (its own stream), yaw and
+    support height as the episode drew them."""
+    if scene.fixture == "board":
+        geometry = {"half_x": _uniform(rng, scene.board_width) / 2,
+                    "half_y": _uniform(rng, scene.board_depth) / 2,
+                    "height": _uniform(rng, scene.board_height),
+                    "thickness": scene.board_thickness, "clearance": scene.clearance,
+                    "wall_mounted": bool(rng.random() < scene.wall_mounted_share)}
+    else:
+        geometry = {"half_x": _uniform(rng, scene.inner_size_x) / 2,
+                    "half_y": _uniform(rng, scene.inner_size_y) / 2,
+                    "wall_height": _uniform(rng, scene.wall_height),
+                    "wall_thickness": scene.wall_thickness,
+                    "bottom_thickness": scene.bottom_thickness}
+    offset = scene.fixture_offset
     x, y = (float(v) for v in rng.uniform(-offset, offset, 2)) if offset > 0 else (0.0, 0.0)
     table = None
     if scene.table_size is not None:
@@ -163,5 +286,6 @@ def draw_fixture(scene: SceneConfig, yaw: float, base_z: float,
     if scene.support_tilt_deg[1] > 0:
         tilt = _uniform(rng, scene.support_tilt_deg)
         tilt_azimuth = float(rng.uniform(0.0, 360.0))
-    return Fixture(half_x, half_y, wall_height, scene.wall_thickness, scene.bottom_thickness,
-                   x, y, yaw, base_z, table, tilt, tilt_azimuth)
+    return FIXTURE_KINDS[scene.fixture](**geometry, x=x, y=y, yaw=yaw, base_z=base_z,
+                                        table=table, tilt_deg=tilt,
+                                        tilt_azimuth_deg=tilt_azimuth)

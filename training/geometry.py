@@ -7,14 +7,14 @@ from __future__ import annotations
 import numpy as np
 
 from training.config import SceneConfig
-from training.fixture import Fixture, episode_fixture
+from training.fixture import PlacedFixture, episode_fixture
 
 # Sample points per box axis for volume fractions. The grid includes the box's faces, so a box
 # that pokes out of the container by any amount loses at least one point: "fully inside" is
-# exact, which is what separates success from stuck objects (see discover.py).
+# exact, which is what separates "inside" from "partly inside" (see discover.py).
 SAMPLE_GRID = 10
-# Resting contacts interpenetrate by a few mm in Bullet; a box lying against the inner wall
-# is inside the container, so the inner footprint gets this much tolerance.
+# Resting contacts interpenetrate by a few mm in Bullet; a box lying against an inner wall is
+# inside the region, so its footprint (and its bottom) get this much tolerance.
 CONTACT_SLOP = 0.005  # m
 
 
@@ -56,7 +56,7 @@ def object_sample_points(obj: dict) -> np.ndarray:
     return grid @ quat_to_matrix(obj["orientation"]).T + np.asarray(obj["position"])
 
 
-def object_top(obj: dict, fixture: Fixture) -> float:
+def object_top(obj: dict, fixture: PlacedFixture) -> float:
     """Height of the object's highest point above the fixture's base (m)."""
     if obj.get("shape", "box") == "cylinder":  # the highest point of its two rim circles
         axis = quat_to_matrix(obj["orientation"])[:, 2]
@@ -73,42 +73,57 @@ def box_corners(size, position, orientation) -> np.ndarray:
 
 
 def object_measurements(obj: dict, episode: dict, scene: SceneConfig) -> dict[str, float]:
-    """Measurements of one final object state against the episode's fixture, in its frame.
+    """Measurements of one final object state against the episode's target region (the
+    fixture's ``Region``), in the fixture's frame.
 
     - ``com_offset``: the centre of mass's offset from the footprint's centre, per axis in
-      units of that axis's inner half-width, the larger of the two (< 1 inside the inner
-      footprint);
-    - ``com_beyond_wall``: how far the centre of mass lies beyond the walls' inner faces, in
-      wall thicknesses (the larger axis): < 0 inside the inner footprint, 0-1 over the wall
-      top, > 1 beyond the outer footprint;
-    - ``com_beyond_outer``: 1.0 when the centre of mass is outside the outer footprint;
-    - ``inside_fraction``: fraction of the object's volume inside the inner volume (inner
-      footprint, below the rim top);
-    - ``over_fraction``: fraction of its volume above the outer footprint;
-    - ``top_above_rim``: height of its highest point above the rim top (m).
+      units of that axis's half-width, the larger of the two (< 1 over the footprint);
+    - ``com_beyond_edge``: how far the centre of mass lies beyond the region, in edge
+      thicknesses: the larger of its distance beyond the footprint (the larger axis) and its
+      depth below the region's bottom. < 0 inside, 0-1 over the edge (a wall's top), > 1
+      beyond the fixture's outer footprint, or fallen below the region;
+    - ``com_beyond_outer``: 1.0 when the centre of mass is beyond the outer footprint
+      (footprint plus edge) or more than an edge thickness below the region's bottom;
+    - ``inside_fraction``: fraction of the object's volume inside the region (its footprint,
+      between its bottom and top);
+    - ``footprint_fraction``: fraction of its volume over the footprint, at any height;
+    - ``reach_beyond_footprint``: how far its farthest point reaches beyond the footprint (m;
+      < 0: it stays that far inside);
+    - ``over_fraction``: fraction of its volume over the outer footprint, at any height;
+    - ``top_above_region``: height of its highest point above the region's top (m).
     """
     fixture = episode_fixture(episode, scene)
-    half_in = np.array([fixture.half_x, fixture.half_y])
-    half_out = half_in + fixture.wall_thickness
+    region = fixture.region()
+    half_in = np.array([region.half_x, region.half_y])
+    half_out = half_in + region.edge
     pts = fixture.to_frame(object_sample_points(obj))
     com = fixture.to_frame(np.asarray(obj["position"]))
-    inside_xy = np.all(np.abs(pts[:, :2]) <= half_in + CONTACT_SLOP, axis=1)
+    over_xy = np.all(np.abs(pts[:, :2]) <= half_in + CONTACT_SLOP, axis=1)
+    within_z = (pts[:, 2] >= region.bottom - CONTACT_SLOP) & (pts[:, 2] <= region.top)
+    beyond = max(float(np.max(np.abs(com[:2]) - half_in)), region.bottom - float(com[2]))
     return {
         "com_offset": float(np.max(np.abs(com[:2]) / half_in)),
-        "com_beyond_wall": float(np.max(np.abs(com[:2]) - half_in) / fixture.wall_thickness),
-        "com_beyond_outer": float(np.any(np.abs(com[:2]) > half_out)),
-        "inside_fraction": float(np.mean(inside_xy & (pts[:, 2] <= fixture.wall_height))),
+        "com_beyond_edge": beyond / region.edge,
+        "com_beyond_outer": float(np.any(np.abs(com[:2]) > half_out)
+                                  or com[2] < region.bottom - region.edge),
+        "inside_fraction": float(np.mean(over_xy & within_z)),
+        "footprint_fraction": float(np.mean(over_xy)),
+        "reach_beyond_footprint": float(np.max(np.abs(pts[:, :2]) - half_in)),
         "over_fraction": float(np.mean(np.all(np.abs(pts[:, :2]) < half_out, axis=1))),
-        "top_above_rim": object_top(obj, fixture) - fixture.wall_height,
+        "top_above_region": object_top(obj, fixture) - region.top,
     }
 
 
-def geometric_outcome(m: dict[str, float], scene: SceneConfig) -> str:
-    """The yardstick of docs/interface.md §2 (never the label source): success if the centre of
-    mass is inside the inner footprint and the top below the rim; fell_outside if the centre of
-    mass is outside the outer footprint; otherwise stuck_on_rim."""
-    if m["com_offset"] < 1.0 and m["top_above_rim"] <= 0.0:
-        return "success"
+def geometric_outcome(m: dict[str, float], inside_rule: str = "top") -> str:
+    """The yardstick of docs/interface.md §2 (never the label source), as a descriptor
+    (``DESCRIPTORS``): "inside" if the centre of mass is inside the region and, by
+    ``inside_rule`` (the spec's ``discover.yardstick_inside``), the top is below the region's
+    top or all of the object is over the footprint; "outside" if the centre of mass is beyond
+    the outer footprint or fell below the region; otherwise "partly_inside"."""
+    held = (m["top_above_region"] <= 0.0 if inside_rule == "top"
+            else m["footprint_fraction"] >= 1.0)
+    if m["com_beyond_edge"] < 0.0 and held:
+        return "inside"
     if m["com_beyond_outer"]:
-        return "fell_outside"
-    return "stuck_on_rim"
+        return "outside"
+    return "partly_inside"

@@ -33,14 +33,15 @@ import numpy as np
 
 from task_outcome_ros.labels import (
     BACKGROUND,
-    CONTAINER,
+    FIXTURE,
     IGNORE,
-    OUTCOME_IDS,
+    LabelTable,
     outcome_pixel_counts,
     outcomes_present,
 )
 from training.chunks import load_chunks, run_chunks
 from training.config import dataset_config_from_dict, load_json, save_json
+from training.discover import load_outcomes
 from training.fixture import axis_angle_rotation, episode_fixture
 from training.render import look_at, write_pair
 from training.simulate import object_collision_shape
@@ -58,7 +59,12 @@ def draw_view(cfg, fixture, rng: np.random.Generator) -> dict:
     distance = rng.uniform(0.95 * near, 1.05 * far)
     lo, hi = cam.elevation_deg
     elevation = math.radians(min(89.0, rng.uniform(lo - 3.0, hi + 3.0)))
-    azimuth = math.radians(rng.uniform(0.0, 360.0))
+    # The envelope's azimuths, 5 degrees wider each way (all around for the default task).
+    lo, hi = cam.azimuth_deg
+    azimuth = math.radians(rng.uniform(lo - 5.0, hi + 5.0) if hi - lo < 350.0
+                           else rng.uniform(0.0, 360.0))
+    if cam.azimuth_frame == "fixture":
+        azimuth += fixture.yaw
     offset = rng.uniform(-1.0, 1.0, 3) * 1.2 * cam.target_offset / math.sqrt(3.0)
     target = np.asarray(fixture.centre()) + offset
     position = target + distance * np.array([math.cos(elevation) * math.cos(azimuth),
@@ -94,7 +100,8 @@ class RayWorld:
     def close(self) -> None:
         self.pb.disconnect(self.client)
 
-    def build(self, episode: dict, outcomes: list[str], scene) -> dict[int, int]:
+    def build(self, episode: dict, outcomes: list[str], scene, table: LabelTable
+              ) -> dict[int, int]:
         """Reset the world to ``episode``; returns body id -> pixel label."""
         pb, c = self.pb, self.client
         pb.resetSimulation(physicsClientId=c)
@@ -105,13 +112,15 @@ class RayWorld:
                                    physicsClientId=c)
         labels[floor] = BACKGROUND
         yaw = pb.getQuaternionFromEuler([0, 0, fixture.yaw])
-        for half, centre in fixture.container_boxes():
+        solids = [(FIXTURE, box) for box in fixture.solid_boxes()]
+        solids += [(BACKGROUND, box) for box in fixture.background_boxes()]
+        for label, (half, centre) in solids:
             box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(half),
                                           physicsClientId=c)
             pos, _ = pb.multiplyTransforms([fixture.x, fixture.y, fixture.base_z], yaw,
                                            list(centre), [0, 0, 0, 1])
             labels[pb.createMultiBody(0, box, basePosition=pos, baseOrientation=yaw,
-                                      physicsClientId=c)] = CONTAINER
+                                      physicsClientId=c)] = label
         if fixture.table is not None:
             half, centre = fixture.table.box()
             box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(half),
@@ -122,7 +131,7 @@ class RayWorld:
             shape = object_collision_shape(pb, c, obj.get("shape", "box"), obj["size"])
             body = pb.createMultiBody(0, shape, basePosition=obj["position"],
                                       baseOrientation=obj["orientation"], physicsClientId=c)
-            labels[body] = OUTCOME_IDS[outcome]
+            labels[body] = table.outcome_ids[outcome]
         return labels
 
     def cast(self, view: dict, body_labels: dict[int, int]
@@ -206,10 +215,10 @@ _STATE: dict = {}
 
 
 def _init_worker(out_dir: str, cfg, episodes: list[dict], outcomes: list[list[str]],
-                 seed: int) -> None:
+                 table: LabelTable, seed: int) -> None:
     cv2.setNumThreads(1)
     _STATE.update(out_dir=Path(out_dir), cfg=cfg, episodes=episodes, outcomes=outcomes,
-                  seed=seed, world=RayWorld())
+                  table=table, seed=seed, world=RayWorld())
 
 
 def independent_image(i: int) -> dict:
@@ -217,7 +226,8 @@ def independent_image(i: int) -> dict:
     cfg, seed, world = _STATE["cfg"], _STATE["seed"], _STATE["world"]
     episode, outcomes = _STATE["episodes"][i], _STATE["outcomes"][i]
     rng = np.random.default_rng([seed, i, SEED_STREAM])
-    body_labels = world.build(episode, outcomes, cfg.scene)
+    table = _STATE["table"]
+    body_labels = world.build(episode, outcomes, cfg.scene, table)
     view = draw_view(cfg, episode_fixture(episode, cfg.scene), rng)
     clean, labels, cos = world.cast(view, body_labels)
     depth, noisy_labels = nguyen_noise(clean, labels, cos, rng)
@@ -225,8 +235,8 @@ def independent_image(i: int) -> dict:
     return {"episode": i, "split": "val", "seed": [seed, i, SEED_STREAM], "camera": view,
             "camera_info": {**{k: view[k] for k in ("width", "height", "cx", "cy")},
                             "fx": view["reported_fx"], "fy": view["reported_fx"]},
-            "objects": outcomes, "present": outcomes_present(noisy_labels),
-            "pixel_counts": outcome_pixel_counts(noisy_labels)}
+            "objects": outcomes, "present": outcomes_present(noisy_labels, table=table),
+            "pixel_counts": outcome_pixel_counts(noisy_labels, table)}
 
 
 def _chunk(images: tuple[int, int]) -> dict:
@@ -241,7 +251,7 @@ def make_independent_set(data_dir: Path, out_dir: Path, images: int, seed: int =
     config = load_json(data_dir / "config.json")
     cfg = dataset_config_from_dict(config)
     episodes = load_chunks(data_dir / "simulate", cfg.episodes, cfg.chunk_size)
-    outcomes = load_json(data_dir / "outcomes.json")["outcomes"]
+    outcomes, table = load_outcomes(data_dir)
     count = min(images, len(episodes))
     out_dir.mkdir(parents=True, exist_ok=True)
     recipe = {"source": str(data_dir), "images": count, "seed": seed}
@@ -256,8 +266,10 @@ def make_independent_set(data_dir: Path, out_dir: Path, images: int, seed: int =
             copy(data_dir / name, out_dir / name)
     stage = out_dir / "independent"
     run_chunks(stage, count, CHUNK_IMAGES, workers, _chunk, "independent",
-               initializer=_init_worker, initargs=(str(out_dir), cfg, episodes, outcomes, seed))
+               initializer=_init_worker,
+               initargs=(str(out_dir), cfg, episodes, outcomes, table, seed))
     manifest = {"config": config, **recipe, "generator": "training/independent.py",
+                "label_table": table.to_dict(),
                 "images": load_chunks(stage, count, CHUNK_IMAGES)}
     save_json(out_dir / "manifest.json", manifest)
     return manifest

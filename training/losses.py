@@ -1,9 +1,10 @@
 """Per-image outcome IoU loss (Lovász-softmax), added to the pixel cross-entropy.
 
 Why: the metric that matters is image-level (is each outcome present?), but cross-entropy
-weighs pixels. A 300-pixel stuck_on_rim fringe painted on a success box costs cross-entropy
-little, because it is a few hundred of the batch's 600,000 pixels, yet it makes the presence
-rule report an outcome that is not there. The Lovász-softmax loss (Berman, Rannen Triki &
+weighs pixels. A 300-pixel fringe of a failure outcome painted on a success object costs
+cross-entropy little, because it is a few hundred of the batch's 600,000 pixels, yet it makes
+the presence rule report an outcome that is not there. The Lovász-softmax loss (Berman,
+Rannen Triki &
 Blaschko, CVPR 2018) is a convex surrogate of 1 - IoU; taken per image and per outcome class,
 every image's outcome maps count alike, whatever their size:
 
@@ -11,7 +12,7 @@ every image's outcome maps count alike, whatever their size:
 - for an absent outcome, IoU is 0 as soon as one pixel carries it, and the loss reduces to the
   largest probability of that outcome anywhere in the image.
 
-Only the three outcome classes are scored (background and container are large and easy:
+Only the outcome classes are scored (background and the fixture are large and easy:
 cross-entropy handles them), and only each row's ``top_k`` largest errors are sorted. The
 Lovász gradient at a sorted position depends only on the positions before it, so truncation
 drops just the smallest errors' terms. On the 2-core EPYC (batch 32) a full sort of all 19,200
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import torch
 
-from task_outcome_ros.labels import IGNORE, OUTCOME_IDS
+from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE
 
 
 def outcome_lovasz_loss(logits: torch.Tensor, labels: torch.Tensor, top_k: int = 2048
@@ -31,9 +32,10 @@ def outcome_lovasz_loss(logits: torch.Tensor, labels: torch.Tensor, top_k: int =
     """Mean over images and outcome classes of the Lovász-softmax surrogate of 1 - IoU.
 
     logits (N, C, H, W), labels (N, H, W) long with ``IGNORE`` for pixels without depth (they
-    take no part). Returns a scalar.
+    take no part); the outcome classes are ids FIRST_OUTCOME_ID .. C - 1 (any task's table).
+    Returns a scalar.
     """
-    classes = sorted(OUTCOME_IDS.values())
+    classes = list(range(FIRST_OUTCOME_ID, logits.shape[1]))
     prob = logits.float().softmax(1)[:, classes].flatten(2)              # N, K, P
     flat = labels.flatten(1)
     keep = (flat != IGNORE)[:, None]

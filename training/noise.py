@@ -56,7 +56,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from task_outcome_ros.labels import IGNORE, colourise
+from task_outcome_ros.labels import DEFAULT_TABLE, IGNORE, LabelTable, colourise
 from training.config import NoiseConfig
 
 # Projector at +x (camera's right): projector column p = u - PROJECTOR_SIDE * d.
@@ -289,7 +289,8 @@ def _check_inputs(depth, labels, cos_incidence, fx) -> tuple[np.ndarray, np.ndar
 
 
 def save_clean_vs_noisy_figure(path, clean_depth: np.ndarray, noisy_depth: np.ndarray,
-                               labels_noisy: np.ndarray) -> None:
+                               labels_noisy: np.ndarray, table: LabelTable = DEFAULT_TABLE
+                               ) -> None:
     """Clean depth, noisy depth, their difference and the noisy labels, as one PNG.
 
     Uses the Agg canvas directly (no pyplot state), so it is safe in worker processes.
@@ -320,7 +321,7 @@ def save_clean_vs_noisy_figure(path, clean_depth: np.ndarray, noisy_depth: np.nd
     im = axes[1, 0].imshow(diff_mm, cmap=_cmap("RdBu_r", bad="black"), vmin=-lim, vmax=lim)
     axes[1, 0].set_title("noisy - clean (mm), black = invalid")
     fig.colorbar(im, ax=axes[1, 0], shrink=0.8)
-    axes[1, 1].imshow(colourise(labels_noisy))
+    axes[1, 1].imshow(colourise(labels_noisy, table))
     axes[1, 1].set_title(f"noisy labels, grey = ignore ({IGNORE})")
     for ax in axes.ravel():
         ax.set_axis_off()

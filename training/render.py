@@ -21,8 +21,9 @@ import numpy as np
 from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.labels import (
     BACKGROUND,
-    CONTAINER,
-    OUTCOME_IDS,
+    DEFAULT_TABLE,
+    FIXTURE,
+    LabelTable,
     outcome_pixel_counts,
     outcomes_present,
 )
@@ -34,7 +35,7 @@ from training.config import (
     DatasetConfig,
     SceneConfig,
 )
-from training.fixture import Fixture, _uniform, episode_fixture
+from training.fixture import PlacedFixture, _uniform, episode_fixture
 from training.geometry import quat_to_matrix
 from training.noise import apply_kinect_noise
 from training.seeding import episode_rng, episode_seed
@@ -78,7 +79,7 @@ def look_at(position: np.ndarray, target: np.ndarray, azimuth_deg: float = 0.0,
     return np.stack([right, down, forward], axis=1)
 
 
-def draw_camera(cam: CameraConfig, fixture: Fixture,
+def draw_camera(cam: CameraConfig, fixture: PlacedFixture,
                 rng: np.random.Generator) -> tuple[Camera, dict]:
     """A camera from the envelope (docs/interface.md §4); returns it and its draws (manifest)."""
     f = float(rng.uniform(*cam.focal_px))
@@ -89,7 +90,9 @@ def draw_camera(cam: CameraConfig, fixture: Fixture,
     distance = float(rng.uniform(*cam.distance))
     elevation = float(rng.uniform(*cam.elevation_deg))
     azimuth = float(rng.uniform(*cam.azimuth_deg))
-    # Look-at point uniform in a ball of radius target_offset around the container centre.
+    if cam.azimuth_frame == "fixture":
+        azimuth += math.degrees(fixture.yaw)
+    # Look-at point uniform in a ball of radius target_offset around the fixture's aim point.
     direction = rng.normal(size=3)
     direction /= np.linalg.norm(direction)
     radius = cam.target_offset * float(rng.uniform()) ** (1 / 3)
@@ -124,19 +127,24 @@ class SceneBox:
     cylinder: bool = False
 
 
-def scene_boxes(episode: dict, outcomes: list[str], scene: SceneConfig) -> list[SceneBox]:
-    """The container's five boxes, the table, and the objects, each with its pixel label."""
+def scene_boxes(episode: dict, outcomes: list[str], scene: SceneConfig,
+                table: LabelTable = DEFAULT_TABLE) -> list[SceneBox]:
+    """The fixture's solids, the room's (a wall), the table, and the objects, each with its
+    pixel label (``table`` gives the outcomes' ids)."""
     fixture = episode_fixture(episode, scene)
     rot = fixture.rotation
     base = np.array([fixture.x, fixture.y, fixture.base_z])
-    boxes = [SceneBox(np.array(h), rot @ np.array(p) + base, rot, CONTAINER)
-             for h, p in fixture.container_boxes()]
+    boxes = [SceneBox(np.array(h), rot @ np.array(p) + base, rot, label)
+             for label, solids in ((FIXTURE, fixture.solid_boxes()),
+                                   (BACKGROUND, fixture.background_boxes()))
+             for h, p in solids]
+    ids = table.outcome_ids
     if fixture.table is not None:  # the support: background, like the room floor
         half, centre = fixture.table.box()
         boxes.append(SceneBox(np.array(half), np.array(centre), rot, BACKGROUND))
     for obj, outcome in zip(episode["objects"], outcomes):
         boxes.append(SceneBox(np.array(obj["size"]) / 2, np.array(obj["position"]),
-                              quat_to_matrix(obj["orientation"]), OUTCOME_IDS[outcome],
+                              quat_to_matrix(obj["orientation"]), ids[outcome],
                               cylinder=obj.get("shape", "box") == "cylinder"))
     return boxes
 
@@ -266,13 +274,13 @@ def _cast_cylinder(cyl: SceneBox, camera: Camera, rays: np.ndarray, norm: np.nda
     _write_hits(cyl, rect, np.isfinite(t_hit), t_hit, n_dot, norm, depth, labels, cosine)
 
 
-def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int
-                   ) -> dict:
+def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
+                   table: LabelTable = DEFAULT_TABLE) -> dict:
     """Camera draw, clean render and noise for one episode; returns arrays and the record."""
     index = episode["episode"]
     fixture = episode_fixture(episode, cfg.scene)
     camera, draws = draw_camera(cfg.camera, fixture, episode_rng(seed, index, "render"))
-    clean, labels, cosine = render(scene_boxes(episode, outcomes, cfg.scene),
+    clean, labels, cosine = render(scene_boxes(episode, outcomes, cfg.scene, table),
                                    fixture.room_floor_z, camera)
     noisy, noisy_labels, sensor = apply_sensor(clean, labels, cosine, camera, cfg, seed, index)
     record = {
@@ -282,8 +290,8 @@ def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
                  "simulate": episode_seed(seed, index, "simulate")},
         "camera": {**camera.to_dict(), **draws},
         "objects": outcomes,
-        "present": outcomes_present(noisy_labels),
-        "pixel_counts": outcome_pixel_counts(noisy_labels),
+        "present": outcomes_present(noisy_labels, table=table),
+        "pixel_counts": outcome_pixel_counts(noisy_labels, table),
     }
     if sensor is not None:
         record["sensor"] = sensor
@@ -373,25 +381,27 @@ _STATE: dict = {}
 
 
 def _init_worker(run_dir: str, cfg: DatasetConfig, episodes: list[dict],
-                 outcomes: list[list[str]]) -> None:
+                 outcomes: list[list[str]], table: LabelTable) -> None:
     cv2.setNumThreads(1)  # one process per core already; OpenCV threads would oversubscribe
-    _STATE.update(run_dir=run_dir, cfg=cfg, episodes=episodes, outcomes=outcomes)
+    _STATE.update(run_dir=run_dir, cfg=cfg, episodes=episodes, outcomes=outcomes, table=table)
 
 
 def _render_chunk(episodes: tuple[int, int]) -> dict:
     run_dir, cfg = _STATE["run_dir"], _STATE["cfg"]
     records = []
     for i in range(*episodes):
-        out = render_episode(_STATE["episodes"][i], _STATE["outcomes"][i], cfg, cfg.seed)
+        out = render_episode(_STATE["episodes"][i], _STATE["outcomes"][i], cfg, cfg.seed,
+                             _STATE["table"])
         write_pair(Path(run_dir), i, out["depth"], out["labels"])
         records.append(out["record"])
     return {"episodes": records}
 
 
 def run_render(run_dir: Path, cfg: DatasetConfig, episodes: list[dict],
-               outcomes: list[list[str]]) -> list[dict]:
+               outcomes: list[list[str]], table: LabelTable = DEFAULT_TABLE) -> list[dict]:
     """Render every episode into <run>/images/ (resumable); returns the per-image records."""
     stage_dir = Path(run_dir) / "render"
     run_chunks(stage_dir, cfg.episodes, cfg.chunk_size, cfg.workers, _render_chunk, "render",
-               initializer=_init_worker, initargs=(str(run_dir), cfg, episodes, outcomes))
+               initializer=_init_worker, initargs=(str(run_dir), cfg, episodes, outcomes,
+                                                   table))
     return load_chunks(stage_dir, cfg.episodes, cfg.chunk_size)

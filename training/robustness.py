@@ -35,10 +35,12 @@ from tqdm import tqdm
 
 from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.inference import OutcomeSegmenter
-from task_outcome_ros.labels import OUTCOME_NAMES, outcomes_present
+from task_outcome_ros.labels import DEFAULT_TABLE, LabelTable, outcomes_present
 from training.chunks import load_chunks
 from training.config import DatasetConfig, dataset_config_from_dict, save_json
 from training.dataset import load_manifest
+from training.discover import load_outcomes
+from training.evaluate import same_task
 from training.fixture import episode_fixture
 from training.render import render_episode
 from training.seeding import episode_rng
@@ -69,7 +71,8 @@ class Stress:
 
 
 def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
-                   stress: Stress) -> tuple[np.ndarray, np.ndarray, Intrinsics | None]:
+                   stress: Stress, table: LabelTable = DEFAULT_TABLE
+                   ) -> tuple[np.ndarray, np.ndarray, Intrinsics | None]:
     """(noisy depth, noisy labels, the camera_info the model is given) of one episode: the
     dataset's own ``render_episode`` on the episode and config with the stress applied."""
     fixture = episode_fixture(episode, cfg.scene)
@@ -78,7 +81,7 @@ def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
         fixture = dataclasses.replace(fixture, tilt_deg=stress.support_tilt_deg,
                                       tilt_azimuth_deg=azimuth)
     out = render_episode({**episode, "fixture": fixture.to_record()}, outcomes,
-                         _stressed_config(cfg, stress), seed)
+                         _stressed_config(cfg, stress), seed, table)
     intrinsics = None
     if stress.camera_info:
         camera = Intrinsics.from_record(out["record"]["camera"])
@@ -122,10 +125,11 @@ def score_stress(seg: OutcomeSegmenter, items: list[tuple[dict, list[str]]],
                  cfg: DatasetConfig, stress: Stress) -> dict:
     right, flagged = 0, 0
     for episode, outcomes in items:
-        depth, labels, intrinsics = stressed_frame(episode, outcomes, cfg, cfg.seed, stress)
+        depth, labels, intrinsics = stressed_frame(episode, outcomes, cfg, cfg.seed, stress,
+                                                   seg.table)
         result = seg.segment(depth, intrinsics)
-        truth = outcomes_present(labels, seg.presence_min_pixels)
-        right += int(all(truth[n] == result.present[n] for n in OUTCOME_NAMES))
+        truth = outcomes_present(labels, seg.presence_min_pixels, seg.table)
+        right += int(truth == result.present)
         flagged += int(bool(result.outside_envelope))
     n = len(items)
     return {"image_all_correct": round(right / n, 4), "images": n,
@@ -140,12 +144,13 @@ def run_robustness(checkpoint: Path | None, data_dir: Path, out_dir: Path,
     manifest = load_manifest(data_dir)
     cfg = dataset_config_from_dict(manifest["config"])
     episodes = load_chunks(data_dir / "simulate", cfg.episodes, cfg.chunk_size)
-    outcomes = _load_outcomes(data_dir)
+    outcomes, table = load_outcomes(data_dir)
     val = [im["episode"] for im in manifest["images"] if im["split"] == "val"][:images]
     if not val:
         raise ValueError(f"{data_dir}: no validation images to re-render")
     items = [(episodes[i], outcomes[i]) for i in val]
     seg = OutcomeSegmenter(checkpoint, backend="auto", num_threads=1)
+    same_task(seg.table, table, seg.model_path, data_dir)
     sweeps = sweeps or SWEEPS
     report: dict = {"model": str(seg.model_path), "data": str(data_dir), "task": cfg.task,
                     "images": len(items), "factors": {}}
@@ -161,12 +166,6 @@ def run_robustness(checkpoint: Path | None, data_dir: Path, out_dir: Path,
     save_json(out_dir / "robustness.json", report)
     plot_robustness(out_dir / "robustness.png", report)
     return report
-
-
-def _load_outcomes(data_dir: Path) -> list[list[str]]:
-    from training.config import load_json
-
-    return load_json(data_dir / "outcomes.json")["outcomes"]
 
 
 def plot_robustness(path: Path, report: dict) -> None:

@@ -1,9 +1,10 @@
-"""Stage 1: drop random objects (boxes, cylinders) into an open container with pybullet and
-record where each one comes to rest (docs/interface.md §1). The scene spec (SceneConfig) gives
-the ranges; each episode records the fixture it drew (training/fixture.py).
+"""Stage 1: drop random objects (boxes, cylinders) into an open box, or place them on a shelf
+board, with pybullet and record where each one comes to rest (docs/interface.md §1). The
+scene spec (SceneConfig) gives the ranges; each episode records the fixture it drew
+(training/fixture.py).
 
 One pybullet world lives per worker process and is reused between episodes: the floor and the
-container are moved (rebuilt only when the drawn geometry changes) and the objects removed and
+fixture are moved (rebuilt only when the drawn geometry changes) and the objects removed and
 respawned, which is far cheaper than building a world per episode. pybullet cannot free a
 shape once a body has used it (removeCollisionShape refuses: "it is used"), so memory grew
 ~8 KB per episode; the world is therefore rebuilt with resetSimulation every
@@ -20,7 +21,8 @@ import numpy as np
 
 from training.chunks import load_chunks, run_chunks
 from training.config import DatasetConfig, SceneConfig
-from training.fixture import Fixture, _uniform, draw_fixture, episode_fixture
+from training.fixture import PlacedFixture, Region, _uniform, draw_fixture, episode_fixture
+from training.geometry import quat_to_matrix
 from training.seeding import episode_rng
 
 
@@ -43,7 +45,7 @@ class EpisodeDraw:
     masses: list[float]
     start_positions: list[list[float]]
     start_orientations: list[list[float]]
-    fixture: Fixture
+    fixture: PlacedFixture
     shapes: list[str]
 
 
@@ -78,24 +80,33 @@ def draw_episode(scene: SceneConfig, rng: np.random.Generator,
     n = int(rng.integers(scene.min_objects, scene.max_objects + 1))
     unit_sizes = rng.uniform(0.0, 1.0, size=(n, 3))
     floor_z = float(rng.uniform(*scene.floor_height))
-    yaw = math.radians(float(rng.uniform(*scene.container_yaw_deg)))
+    yaw = math.radians(float(rng.uniform(*scene.fixture_yaw_deg)))
     fixture = draw_fixture(scene, yaw, floor_z, fixture_rng)
+    region = fixture.region()
     shapes = draw_shapes(scene, n, fixture_rng)
     sizes = object_sizes(scene, shapes, unit_sizes)
-    reach = np.array([fixture.half_x, fixture.half_y]) + scene.release_margin
-    offsets = -reach + (reach - -reach) * rng.uniform(0.0, 1.0, size=(n, 2))
-    offsets = fixture.to_world_xy(offsets, scene.release_frame)
+    unit_offsets = rng.uniform(0.0, 1.0, size=(n, 2))
     orientations = [random_quaternion(rng) for _ in range(n)]
-    if scene.release_orientation == "upright":
-        orientations = [upright_quaternion(fixture_rng) for _ in range(n)]
     masses = rng.uniform(*scene.object_mass, size=n)
     friction = float(rng.uniform(*scene.friction))
     restitution = float(rng.uniform(*scene.restitution))
+    if scene.release_mode == "place":
+        offsets, orientations, heights = _placement(scene, region, shapes, sizes,
+                                                    unit_offsets, fixture_rng)
+        offsets = fixture.to_world_xy(offsets, "fixture")
+        starts = floor_z + heights
+    else:
+        reach = np.array([region.half_x, region.half_y]) + scene.release_margin
+        offsets = fixture.to_world_xy(-reach + 2 * reach * unit_offsets, scene.release_frame)
+        if scene.release_orientation == "upright":
+            orientations = [upright_quaternion(fixture_rng) for _ in range(n)]
+        # Parenthesised as it always was, so the default task's data stay bit-identical.
+        starts = np.full(n, floor_z + (region.top + _uniform(fixture_rng, scene.release_height)))
     # Released together; where bounding spheres would overlap, a later object starts higher.
     radii = np.linalg.norm(sizes, axis=1) / 2.0
     positions: list[list[float]] = []
-    base_z = floor_z + (fixture.wall_height + _uniform(fixture_rng, scene.release_above_rim))
     for i in range(n):
+        base_z = float(starts[i])
         z = base_z
         for j, p in enumerate(positions):
             if np.hypot(*(offsets[i] - np.asarray(p[:2]))) < radii[i] + radii[j]:
@@ -111,15 +122,47 @@ def upright_quaternion(rng: np.random.Generator) -> list[float]:
     return [0.0, 0.0, math.sin(half), math.cos(half)]
 
 
+def vertical_half_extent(shape: str, size, orientation: list[float]) -> float:
+    """How far an object in this orientation reaches below (and above) its centre (m)."""
+    r = quat_to_matrix(orientation)
+    if shape == "cylinder":  # its axis is its local z
+        return float(abs(r[2, 2]) * size[2] / 2
+                     + math.sqrt(max(0.0, 1.0 - r[2, 2] ** 2)) * size[0] / 2)
+    return float(np.sum(np.abs(r[2]) * np.asarray(size) / 2))
+
+
+def quaternion_product(a: list[float], b: list[float]) -> list[float]:
+    """The rotation ``a`` after ``b``, pybullet (x, y, z, w) quaternions."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return [aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz]
+
+
+def _placement(scene: SceneConfig, region: Region, shapes: list[str], sizes: np.ndarray,
+               unit: np.ndarray, rng: np.random.Generator
+               ) -> tuple[np.ndarray, list[list[float]], np.ndarray]:
+    """A gripper's placements over the region's front edge (-y): (n, 2) fixture-frame
+    offsets, orientations (upright, random yaw, then a tilt error about a random horizontal
+    axis) and centre heights above the support putting each lowest point ``place_gap`` above
+    the region's bottom."""
+    along = max(0.0, region.half_x - scene.release_margin)
+    offsets, orientations, heights = [], [], []
+    for k, (shape, size) in enumerate(zip(shapes, sizes)):
+        depth = _uniform(rng, scene.place_edge_offset)
+        offsets.append([-along + 2 * along * unit[k, 0], -region.half_y + depth])
+        tilt = math.radians(_uniform(rng, scene.place_tilt_deg))
+        axis = float(rng.uniform(0.0, 2 * math.pi))
+        q_tilt = [math.cos(axis) * math.sin(tilt / 2), math.sin(axis) * math.sin(tilt / 2),
+                  0.0, math.cos(tilt / 2)]
+        q = quaternion_product(q_tilt, upright_quaternion(rng))
+        orientations.append(q)
+        heights.append(region.bottom + _uniform(rng, scene.place_gap)
+                       + vertical_half_extent(shape, size, q))
+    return np.array(offsets), orientations, np.array(heights)
+
+
 REBUILD_EVERY = 200
-
-
-def _shape_key(fixture: Fixture) -> tuple:
-    """What the collision shapes depend on (not the pose, which is set per episode)."""
-    table = None if fixture.table is None else (fixture.table.half_x, fixture.table.half_y,
-                                                fixture.table.top_z - fixture.table.floor_z)
-    return (fixture.half_x, fixture.half_y, fixture.wall_height, fixture.wall_thickness,
-            fixture.bottom_thickness, table)
 
 
 def object_collision_shape(pb, client: int, shape: str, size: list[float]) -> int:
@@ -133,7 +176,7 @@ def object_collision_shape(pb, client: int, shape: str, size: list[float]) -> in
 
 
 class World:
-    """A reusable pybullet DIRECT world: the room floor, the container and maybe a table."""
+    """A reusable pybullet DIRECT world: the room floor, the fixture and maybe a table."""
 
     def __init__(self, scene: SceneConfig):
         import pybullet as pb  # imported here so other stages don't need pybullet loaded
@@ -144,8 +187,8 @@ class World:
         self.shape_key: tuple | None = None
         self._build()
 
-    def _build(self, fixture: Fixture | None = None) -> None:
-        """A fresh world. The container's (and table's) collision shapes follow ``fixture``'s
+    def _build(self, fixture: PlacedFixture | None = None) -> None:
+        """A fresh world. The fixture's (and table's) collision shapes follow ``fixture``'s
         geometry; its pose is set per episode. A spec that draws the geometry per episode
         rebuilds per episode, so a result never depends on the episodes before it."""
         pb, scene, c = self.pb, self.scene, self.client
@@ -159,26 +202,27 @@ class World:
         self.floor = pb.createMultiBody(0, plane, physicsClientId=c)
         if fixture is None:  # the spec's first footprint, until an episode says otherwise
             fixture = episode_fixture({"container_yaw": 0.0, "floor_z": 0.0}, scene)
-        boxes = fixture.container_boxes()
+        # Labels do not matter to physics: the fixture's and the room's solids are one body.
+        boxes = fixture.solid_boxes() + fixture.background_boxes()
         shape = pb.createCollisionShapeArray(
             [pb.GEOM_BOX] * len(boxes), halfExtents=[list(b[0]) for b in boxes],
             collisionFramePositions=[list(b[1]) for b in boxes], physicsClientId=c)
-        self.container = pb.createMultiBody(0, shape, physicsClientId=c)
+        self.fixture_body = pb.createMultiBody(0, shape, physicsClientId=c)
         self.table = None
         if fixture.table is not None:
             half, _ = fixture.table.box()
             table_shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(half),
                                                   physicsClientId=c)
             self.table = pb.createMultiBody(0, table_shape, physicsClientId=c)
-        self.shape_key = _shape_key(fixture)
+        self.shape_key = fixture.shape_key()
         self.objects: list[int] = []   # body ids of this episode's objects
 
     def close(self) -> None:
         self.pb.disconnect(self.client)
 
-    def _prepare(self, fixture: Fixture) -> None:
+    def _prepare(self, fixture: PlacedFixture) -> None:
         """Remove the last episode's objects; rebuild when due or when the geometry changed."""
-        if self.episodes_since_build >= REBUILD_EVERY or _shape_key(fixture) != self.shape_key:
+        if self.episodes_since_build >= REBUILD_EVERY or fixture.shape_key() != self.shape_key:
             self._build(fixture)
             return
         for body in self.objects:
@@ -196,16 +240,17 @@ class World:
         yaw_q = pb.getQuaternionFromEuler([0, 0, draw.container_yaw])
         pb.resetBasePositionAndOrientation(self.floor, [0, 0, fixture.room_floor_z],
                                            [0, 0, 0, 1], physicsClientId=c)
-        pb.resetBasePositionAndOrientation(self.container, [fixture.x, fixture.y, draw.floor_z],
-                                           yaw_q, physicsClientId=c)
-        statics = [self.floor, self.container]
+        pb.resetBasePositionAndOrientation(self.fixture_body,
+                                           [fixture.x, fixture.y, draw.floor_z], yaw_q,
+                                           physicsClientId=c)
+        statics = [self.floor, self.fixture_body]
         if self.table is not None:
             _, centre = fixture.table.box()
             pb.resetBasePositionAndOrientation(self.table, list(centre), yaw_q,
                                                physicsClientId=c)
             statics.append(self.table)
         # Bullet multiplies the two bodies' coefficients: static bodies at 1 make the drawn
-        # value the effective one for object-container and object-floor contacts.
+        # value the effective one for object-fixture and object-floor contacts.
         for body in statics:
             pb.changeDynamics(body, -1, lateralFriction=1.0, restitution=1.0,
                               physicsClientId=c)
@@ -217,6 +262,10 @@ class World:
                                       physicsClientId=c)
             pb.changeDynamics(body, -1, lateralFriction=draw.friction,
                               restitution=draw.restitution, physicsClientId=c)
+            if scene.rolling_friction > 0:  # only then: other specs simulate as they did
+                pb.changeDynamics(body, -1, rollingFriction=scene.rolling_friction,
+                                  spinningFriction=scene.rolling_friction,
+                                  physicsClientId=c)
             self.objects.append(body)
 
         check_every = 6

@@ -3,10 +3,11 @@
 Class-weighted cross-entropy ignoring 255 (no depth), AdamW with warm-up + cosine decay, an
 exponential moving average (EMA) of the weights that is validated and shipped, label-honest
 augmentation (mirror, small shifts, depth scale, re-drawn axial noise and dropout: all leave
-labels where the objects are), images with a box top near the rim drawn more often
-(``near_rim_weight``: where most mistakes are), mixed precision where the hardware does it
-natively (fp16 on CUDA, bf16 on CPUs with AVX512-BF16/AMX), channels-last activations,
-resumable self-describing checkpoints after every epoch, a training-curve plot.
+labels where the objects are), images with an object near the task's inside / partly-inside
+boundary drawn more often (``near_boundary_weight``: where most mistakes are), mixed precision
+where the hardware does it natively (fp16 on CUDA, bf16 on CPUs with AVX512-BF16/AMX),
+channels-last activations, resumable self-describing checkpoints after every epoch, a
+training-curve plot.
 
 Efficiency on 2 CPU cores (measured, see README): images are decoded and shrunk once into the
 cache (training.dataset.build_cache), so an epoch is pure tensor work; augmentation runs on the
@@ -34,12 +35,11 @@ from task_outcome_ros.checkpoint import resolve_device
 from task_outcome_ros.fragments import absorb_fragments, fragment_threshold
 from task_outcome_ros.labels import (
     BACKGROUND,
+    FIRST_OUTCOME_ID,
     IGNORE,
-    NUM_CLASSES,
-    OUTCOME_IDS,
-    OUTCOME_NAMES,
     PRESENCE_MIN_PIXELS,
     REFERENCE_PIXELS,
+    LabelTable,
 )
 from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
@@ -57,7 +57,7 @@ from training.config import (
     save_json,
     to_dict,
 )
-from training.dataset import load_cache, load_manifest
+from training.dataset import load_cache, load_manifest, manifest_table
 from training.hard_cases import episode_hard_cases
 from training.losses import outcome_lovasz_loss
 
@@ -83,7 +83,7 @@ def task_normalisation(dataset: DatasetConfig) -> dict:
     ``model.DEFAULT_NORMALISATION``. A task on a table measures heights from its top."""
     norm = dict(DEFAULT_NORMALISATION)
     norm["offset_m"] = (dataset.camera.distance[0] + dataset.camera.distance[1]) / 2
-    norm["height_scale_m"] = dataset.scene.max_wall_height
+    norm["height_scale_m"] = dataset.scene.height_scale
     norm["focal_over_width"] = dataset.camera.nominal_focal_px / dataset.camera.width
     if dataset.scene.table_size is not None:  # heights from the table top, not the room floor
         norm["support_above_floor"] = list(dataset.scene.table_height)
@@ -98,9 +98,9 @@ def sensor_noise_ratio(dataset: DatasetConfig) -> float:
     return axial / _DEFAULT_AXIAL
 
 
-def class_weights(labels: np.ndarray, power: float) -> torch.Tensor:
+def class_weights(labels: np.ndarray, power: float, num_classes: int) -> torch.Tensor:
     """(1 / frequency) ** power, normalised to mean 1; unseen classes get the largest weight."""
-    counts = np.bincount(labels.ravel(), minlength=256)[:NUM_CLASSES].astype(np.float64)
+    counts = np.bincount(labels.ravel(), minlength=256)[:num_classes].astype(np.float64)
     freq = counts / max(1.0, counts.sum())
     w = np.where(freq > 0, (1.0 / np.maximum(freq, 1e-12)) ** power, 0.0)
     w[freq == 0] = w.max() if w.max() > 0 else 1.0
@@ -271,21 +271,22 @@ def optimise_step(model, optim, x: torch.Tensor, labels: torch.Tensor,
 
 
 def working_size_presence(counts: np.ndarray, small_pixels: int) -> np.ndarray:
-    """(N, 5) working-size class counts -> (N, 3) presence at the reference resolution."""
+    """(N, classes) working-size class counts -> (N, outcomes) presence at the reference
+    resolution, outcomes in id order."""
     scaled = counts * (REFERENCE_PIXELS / small_pixels)
-    ids = [OUTCOME_IDS[name] for name in OUTCOME_NAMES]
-    return scaled[:, ids] >= PRESENCE_MIN_PIXELS
+    return scaled[:, FIRST_OUTCOME_ID:] >= PRESENCE_MIN_PIXELS
 
 
 @torch.inference_mode()
-def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch_size: int
-             ) -> dict:
+def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch_size: int,
+             table: LabelTable) -> dict:
     """Image-level all-correct rate and pixel IoU at the working size, after the same
     fragment absorption as inference."""
     model.eval()
     n = len(arrays["indices"])
-    conf = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
-    counts = np.zeros((n, NUM_CLASSES), np.int64)
+    k = table.num_classes
+    conf = np.zeros((k, k), np.int64)
+    counts = np.zeros((n, k), np.int64)
     for s in range(0, n, batch_size):
         depth, valid, _, intrinsics = gather_batch(arrays, np.arange(s, min(s + batch_size, n)),
                                                    None)
@@ -293,14 +294,15 @@ def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch
                      ).argmax(1).cpu().numpy()
         # As inference does: fragments absorbed first, then no depth -> background.
         fragments = fragment_threshold(*pred.shape[1:])
-        pred = np.stack([absorb_fragments(p.astype(np.uint8), fragments) for p in pred])
+        pred = np.stack([absorb_fragments(p.astype(np.uint8), fragments, table=table)
+                         for p in pred])
         pred[valid.numpy() == 0] = BACKGROUND
         truth = arrays["labels"][s:s + batch_size]
-        for c in range(NUM_CLASSES):
+        for c in range(k):
             counts[s:s + len(pred), c] = (pred == c).reshape(len(pred), -1).sum(1)
         keep = truth != IGNORE
-        conf += np.bincount(truth[keep].astype(np.int64) * NUM_CLASSES + pred[keep],
-                            minlength=NUM_CLASSES ** 2).reshape(NUM_CLASSES, NUM_CLASSES)
+        conf += np.bincount(truth[keep].astype(np.int64) * k + pred[keep],
+                            minlength=k ** 2).reshape(k, k)
     small = arrays["labels"].shape[1] * arrays["labels"].shape[2]
     pred_present = working_size_presence(counts, small)
     iou = np.diag(conf) / np.maximum(1, conf.sum(0) + conf.sum(1) - np.diag(conf))
@@ -317,18 +319,19 @@ def epoch_order(n: int, sample_weights: np.ndarray | None, gen: torch.Generator)
                              replacement=True, generator=gen).numpy()
 
 
-def near_rim_sample_weights(run_dir: Path, indices: np.ndarray, weight: float
-                            ) -> np.ndarray | None:
-    """Per-image sampling weights: ``weight`` for images tagged near_rim, 1 for the others;
+def near_boundary_sample_weights(run_dir: Path, indices: np.ndarray, weight: float
+                                 ) -> np.ndarray | None:
+    """Per-image sampling weights: ``weight`` for images tagged near_boundary, 1 for others;
     None (uniform epochs) when ``weight`` is 1."""
     if weight == 1.0:
         return None
     cases = episode_hard_cases(run_dir, {int(i) for i in indices})
     if cases is None:
-        raise ValueError(f"{run_dir}: near_rim_weight needs the run's simulate/ results to "
-                         "find the near-rim images; --near-rim-weight 1 samples uniformly")
-    near = np.array(["near_rim" in cases[int(i)].tags for i in indices])
-    print(f"train: {near.sum()} of {len(near)} training images are near the rim; "
+        raise ValueError(f"{run_dir}: near_boundary_weight needs the run's simulate/ results "
+                         "to find the near-boundary images; --near-boundary-weight 1 samples "
+                         "uniformly")
+    near = np.array(["near_boundary" in cases[int(i)].tags for i in indices])
+    print(f"train: {near.sum()} of {len(near)} training images are near the boundary; "
           f"sampled with weight {weight:g}")
     return np.where(near, weight, 1.0)
 
@@ -375,9 +378,10 @@ def manifest_intrinsics(manifest: dict, indices: np.ndarray) -> np.ndarray:
                     ) if len(indices) else np.zeros((0, 4), np.float32)
 
 
-def _truth_present(manifest: dict, indices: np.ndarray) -> np.ndarray:
+def _truth_present(manifest: dict, indices: np.ndarray, table: LabelTable) -> np.ndarray:
     by_index = {im["episode"]: im["present"] for im in manifest["images"]}
-    return np.array([[by_index[int(i)][name] for name in OUTCOME_NAMES] for i in indices])
+    return np.array([[by_index[int(i)][name] for name in table.outcome_names]
+                     for i in indices]).reshape(len(indices), len(table.outcome_names))
 
 
 def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool = True,
@@ -405,12 +409,15 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
             arrays["intrinsics"] = manifest_intrinsics(manifest, arrays["indices"])
     if len(train_arrays["indices"]) == 0:
         raise ValueError(f"{run_dir}: the train split is empty; generate more episodes")
-    val_truth = _truth_present(manifest, val_arrays["indices"])
-    weights = class_weights(train_arrays["labels"], cfg.class_weight_power).to(device)
-    sample_weights = near_rim_sample_weights(run_dir, train_arrays["indices"],
-                                             cfg.near_rim_weight)
+    table = manifest_table(manifest)
+    val_truth = _truth_present(manifest, val_arrays["indices"], table)
+    weights = class_weights(train_arrays["labels"], cfg.class_weight_power,
+                            table.num_classes).to(device)
+    sample_weights = near_boundary_sample_weights(run_dir, train_arrays["indices"],
+                                                  cfg.near_boundary_weight)
 
-    model = build_model(cfg.model_args).to(device)
+    model_args = {**cfg.model_args, "num_classes": table.num_classes}
+    model = build_model(model_args).to(device)
     memory_format = torch.channels_last if cfg.channels_last else torch.contiguous_format
     model = model.to(memory_format=memory_format)
     optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -473,7 +480,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
             average.update(model)
             losses.append(loss.item())
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
-        metrics = validate(average.module, val_arrays, val_truth, device, norm, 64)
+        metrics = validate(average.module, val_arrays, val_truth, device, norm, 64, table)
         entry = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)),
                  "epoch_s": round(time.perf_counter() - t_epoch, 1), **metrics}
         history.append(entry)
@@ -483,7 +490,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         key = (metrics["image_all_correct"], metrics["pixel_miou"])
         extra = {"history": history, "best_key": list(max(key, best_key)),
                  "dataset": str(run_dir), "n_train": n, "precision": precision}
-        common = dict(model_args=cfg.model_args, input_size=cfg.input_size, normalisation=norm,
+        common = dict(model_args=model_args, label_table=table, input_size=cfg.input_size,
+                      normalisation=norm,
                       train_config={"train": to_dict(cfg), "dataset": manifest["config"]},
                       metrics=metrics)
         if key > best_key:
