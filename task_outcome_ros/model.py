@@ -37,6 +37,7 @@ from torch import nn
 from task_outcome_ros.depth import sanitize_depth
 from task_outcome_ros.floor import (
     FLOOR_FIT,
+    FLOOR_FITS,
     FOCAL_OVER_WIDTH,
     LEGACY_FLOOR_FIT,
     FloorTracker,
@@ -53,7 +54,7 @@ DEFAULT_NORMALISATION: dict[str, Any] = {
     "height_scale_m": 0.25, "focal_over_width": FOCAL_OVER_WIDTH,
     "floor_fit": FLOOR_FIT}
 _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
-_FLOOR_FITS = (LEGACY_FLOOR_FIT, FLOOR_FIT)
+_FLOOR_FITS = FLOOR_FITS
 # normalisation["intrinsics"]: where the height channel's camera comes from in training.
 INTRINSICS_FROM_CAMERA_INFO = "camera_info"
 DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution

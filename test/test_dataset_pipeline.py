@@ -156,6 +156,27 @@ def test_the_tote_spec_is_deterministic_and_labels_its_own_scene(tmp_path):
     assert shapes <= {"box", "cylinder"}
 
 
+def test_the_shelf_spec_runs_end_to_end_with_its_own_label_table(tmp_path):
+    """A second task from its spec alone: boards on legs or walls, placed objects, the
+    discovered outcomes under the shelf's words, labels painted with the run's own ids and the
+    board in every image."""
+    out = tmp_path / "shelf"
+    _cli("dataset", "--scene", "shelf", "--episodes", "12", "--chunk-size", "6", "--seed", "3",
+         "--out", str(out))
+    cfg, episodes, outcomes = _load_run(out)
+    assert cfg.task == "shelf" and {e["fixture"]["kind"] for e in episodes} == {"board"}
+    assert {e["fixture"]["wall_mounted"] for e in episodes} == {True, False}
+    table = manifest_table(load_json(out / "manifest.json"))
+    assert table.classes[:2] == ("background", "shelf")
+    assert set(table.outcome_names) <= {"on_shelf", "fell_off", "hanging_over_edge"}
+    assert {name for names in outcomes for name in names} == set(table.outcome_names)
+    for im, names in zip(load_json(out / "manifest.json")["images"], outcomes):
+        _, labels = read_pair(out, im["episode"])
+        assert (labels == FIXTURE).sum() > 500, im["episode"]  # the board is in view
+        allowed = {0, 1, 255} | {table.outcome_ids[name] for name in names}
+        assert set(np.unique(labels).tolist()) <= allowed, (im["episode"], names)
+
+
 def test_killed_run_resumes_to_identical_bytes(runs, tmp_path):
     """SIGKILL the whole process group mid-render, leave stray temp files, run again."""
     out = tmp_path / "resumed"

@@ -166,7 +166,7 @@ def test_floor_fit_version_is_recorded_and_validated() -> None:
     assert check_normalisation(DEFAULT_NORMALISATION)["floor_fit"] == FLOOR_FIT
     older = {k: v for k, v in DEFAULT_NORMALISATION.items() if k != "floor_fit"}
     assert check_normalisation(older)["floor_fit"] == LEGACY_FLOOR_FIT
-    for bad in (0, 3, 2.0, True, "2"):
+    for bad in (0, 4, 2.0, True, "2"):
         with pytest.raises(ValueError, match="floor_fit"):
             check_normalisation(dict(DEFAULT_NORMALISATION, floor_fit=bad))
     with pytest.raises(ValueError, match="floor fit version"):
@@ -267,3 +267,38 @@ def test_floor_tracker_refits_when_a_table_top_leaves_the_view() -> None:
         0.9 * depth.shape[2])]
     height_above_floor(depth, covered, support_above_floor=band, tracker=tracker)
     assert tracker.refits == 2 and tracker.reused == 0
+
+
+def _wall_behind_a_floor_strip(elevation_deg: float = 30.0) -> tuple[torch.Tensor, torch.Tensor,
+                                                                    np.ndarray]:
+    """A camera 1.5 m up, looking down at 30 degrees at a wall 2 m ahead: the wall fills most
+    of the frame, the floor only its bottom rows (a shelf hung on a wall). Returns depth,
+    validity and the floor's pixels."""
+    h, w, f = 120, 160, 140.0
+    el = np.radians(elevation_deg)
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    rays = np.stack([(u - (w - 1) / 2) / f, (v - (h - 1) / 2) / f, np.ones_like(u)], -1)
+    # Camera frame -> world: x right, forward horizontal, z up.
+    forward = np.array([0.0, np.cos(el), -np.sin(el)])
+    down = np.array([0.0, -np.sin(el), -np.cos(el)])
+    world = rays[..., 0:1] * np.array([1.0, 0, 0]) + rays[..., 1:2] * down \
+        + rays[..., 2:3] * forward
+    t_floor = np.where(world[..., 2] < 0, 1.5 / -world[..., 2], np.inf)
+    t_wall = np.where(world[..., 1] > 0, 2.0 / world[..., 1], np.inf)
+    t = np.minimum(t_floor, t_wall)
+    depth = t * rays[..., 2]
+    floor = t_floor < t_wall
+    assert 0.1 < floor.mean() < 0.5  # the wall is the larger plane
+    valid = np.isfinite(depth)
+    return (torch.from_numpy(np.where(valid, depth, 0).astype(np.float32))[None],
+            torch.from_numpy(valid)[None], floor)
+
+
+def test_a_wall_facing_the_camera_is_never_the_support() -> None:
+    depth, valid, floor = _wall_behind_a_floor_strip()
+    intrinsics = torch.tensor([[140.0 / 160, 140.0 / 120, 0.0, 0.0]])
+    heights = height_above_floor(depth, valid, intrinsics=intrinsics)[0].numpy()
+    assert np.abs(heights[floor]).max() < 0.002            # measured from the floor
+    # Version 2 took the wall (most pixels, nothing beneath it) for the floor.
+    old = height_above_floor(depth, valid, intrinsics=intrinsics, version=2)[0].numpy()
+    assert np.abs(old[floor]).max() > 0.2
