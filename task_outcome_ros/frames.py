@@ -45,7 +45,7 @@ class FrameOutputs:
 
 
 NO_CAMERA_INFO_NOTE = ("no usable depth/camera_info: the network's height channel uses the "
-                       "nominal camera, which is less accurate near the rim")
+                       "nominal camera, whose heights are a few per cent off")
 
 
 def frame_intrinsics(camera_info: Any | None, width: int, height: int,

@@ -59,7 +59,8 @@ def truth_outcomes(ground_truth: dict, table: L.LabelTable | None = None) -> tup
 def require_outcomes(ground_truth: dict, names: tuple[str, ...]) -> None:
     """BagToolError unless a model with the outcomes ``names`` can answer for every outcome of
     ``ground_truth``. (A model may know more: a small run may not have discovered them all;
-    the score is on the truth's outcomes.)"""
+    such an outcome is absent from every truth frame, and the score counts the model's
+    answers for it too.)"""
     unknown = [name for name in truth_outcomes(ground_truth) if name not in names]
     if unknown:
         raise BagToolError(f"{ground_truth.get('path', 'the ground truth')} is about the "
@@ -73,11 +74,15 @@ def score(ground_truth: dict, predicted: dict[int, dict[str, bool] | None],
     """Image-level presence scores of ``predicted`` (stamp ns -> present, None = ERROR frame).
 
     The truth is the presence rule applied to the ground-truth pixel counts with the same
-    ``presence_min_pixels``, for the outcomes ``truth_outcomes(ground_truth, table)``. A
-    frame with no prediction (ERROR status, or missing from the bag) counts as not
-    all-correct and as 'nothing present' for precision and recall.
+    ``presence_min_pixels``, for the outcomes ``truth_outcomes(ground_truth, table)`` and
+    any further outcome the answers know (the truth's run did not find it: absent in every
+    frame, so a model that reports it is wrong). A frame with no prediction (ERROR status, or
+    missing from the bag) counts as not all-correct and as 'nothing present' for precision
+    and recall.
     """
-    names = truth_outcomes(ground_truth, table)
+    known = truth_outcomes(ground_truth, table)
+    answered = next((p for p in predicted.values() if p is not None), {})
+    names = known + tuple(name for name in answered if name not in known)
     n = len(ground_truth["frames"])
     truth = np.zeros((n, len(names)), bool)
     pred = np.zeros_like(truth)
@@ -85,7 +90,8 @@ def score(ground_truth: dict, predicted: dict[int, dict[str, bool] | None],
     mistakes, n_errors, n_missing = [], 0, 0
     for i, frame in enumerate(ground_truth["frames"]):
         threshold = L.presence_threshold(frame["height"], frame["width"], presence_min_pixels)
-        truth[i] = [count >= threshold for count in _values(frame["pixel_counts"], names,
+        counts = {**dict.fromkeys(names[len(known):], 0), **frame["pixel_counts"]}
+        truth[i] = [count >= threshold for count in _values(counts, names,
                                                              f"frame {i}'s pixel counts")]
         stamp = int(frame["stamp_ns"])
         if stamp not in predicted:

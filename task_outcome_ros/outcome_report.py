@@ -103,8 +103,9 @@ def label_table_value(table: L.LabelTable) -> str:
 
 def status_outcomes(values: dict[str, str]) -> StatusOutcomes:
     """The outcomes of a status's key/values: from its ``label_table`` value; for a status
-    without one (an older node, which served the default task only) from its
-    ``<name>.present`` keys; with neither, the default task's."""
+    without a readable one from its ``<name>.present`` keys (an older node served the default
+    task only; outcomes of another task then all count as failures, so that a check never
+    calls a place a success it cannot judge); with neither, the default task's."""
     text = values.get(LABEL_TABLE_KEY)
     if text is not None:
         try:
@@ -113,8 +114,10 @@ def status_outcomes(values: dict[str, str]) -> StatusOutcomes:
         except ValueError:  # unreadable (LabelTableError is one too): fall back to the keys
             pass
     names = tuple(key.removesuffix(".present") for key in values if key.endswith(".present"))
-    if names:
+    if names and set(names) <= set(L.DEFAULT_TABLE.outcome_names):
         return StatusOutcomes(names, tuple(n for n in names if n in L.DEFAULT_TABLE.failures))
+    if names:  # another task's, without its table: nothing is known to be a success
+        return StatusOutcomes(names, names)
     return StatusOutcomes(L.DEFAULT_TABLE.outcome_names, L.DEFAULT_TABLE.failures)
 
 

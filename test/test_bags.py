@@ -369,6 +369,15 @@ def test_scoring_uses_the_ground_truths_outcomes_and_names_a_mismatch():
     assert report["presence_recall"]["hanging_over_edge"] == 1.0
     with pytest.raises(B.BagToolError, match="different outcomes"):
         ground_truth.score(gt, {1: dict.fromkeys(L.DEFAULT_TABLE.outcome_names, False)})
+    # A model knowing an outcome the truth's small run never found: absent in the truth, so
+    # reporting it is a mistake (a false positive), not ignored.
+    two = {"label_table": L.LabelTable.build("shelf", [("on_shelf", False),
+                                                       ("fell_off", True)]).to_dict(),
+           "frames": [{**gt["frames"][0], "pixel_counts": {"on_shelf": 900, "fell_off": 0}}]}
+    said = {**dict.fromkeys(SHELF_TABLE.outcome_names, False), "on_shelf": True}
+    assert ground_truth.score(two, {1: said})["image_all_correct"] == 1.0
+    wrong = ground_truth.score(two, {1: {**said, "tipped": True}})
+    assert wrong["image_all_correct"] == 0.0 and wrong["tipped"]["false_positives"] == 1
 
 
 def test_live_status_outcomes_come_from_the_status():

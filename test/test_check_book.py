@@ -120,3 +120,6 @@ def test_status_outcomes_fall_back_to_the_keys_then_the_default_task():
                                  "fell_outside.present": "false", "envelope": "ok"})
         assert older == (("success", "fell_outside"), ("fell_outside",))
     assert status_outcomes({}) == (DEFAULT_TABLE.outcome_names, DEFAULT_TABLE.failures)
+    # Another task's keys without a readable table: none of them can be judged a success.
+    unknown = status_outcomes({"label_table": "[{not json", "on_shelf.present": "true"})
+    assert unknown == (("on_shelf",), ("on_shelf",))

@@ -383,11 +383,11 @@ def _shots(cfg: DatasetConfig, episodes: list[dict], outcomes: list[list[str]],
         ep = episodes[i]
         fixture = episode_fixture(ep, cfg.scene)
         cam, _ = draw_camera(cfg.camera, fixture, episode_rng(cfg.seed, i, "render"))
-        boxes = scene_boxes(ep, outcomes[i], cfg.scene)
+        boxes = scene_boxes(ep, outcomes[i], cfg.scene, DEFAULT_TABLE)
         depth, labels, cosine = render(boxes, fixture.room_floor_z, cam)
         out.append({"index": i, "episode": ep, "camera": cam, "boxes": boxes, "depth": depth,
                     "labels": labels, "cosine": cosine,
-                    "noisy": render_episode(ep, outcomes[i], cfg, cfg.seed)})
+                    "noisy": render_episode(ep, outcomes[i], cfg, cfg.seed, DEFAULT_TABLE)})
     return out
 
 

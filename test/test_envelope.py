@@ -16,6 +16,7 @@ import pytest
 from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.envelope import Envelope, FrameStats, check, envelope_value, frame_stats
 from task_outcome_ros.inference import OutcomeSegmenter, default_model_path
+from task_outcome_ros.labels import DEFAULT_TABLE
 from training.config import to_dict
 from training.fixture import Fixture, Table
 from training.render import Camera, look_at, render, scene_boxes
@@ -37,8 +38,9 @@ def _frame(fixture: Fixture, distance: float, elevation: float = 55.0, f: float 
     pos = target + distance * np.array([math.cos(el) * math.cos(az),
                                         math.cos(el) * math.sin(az), math.sin(el)])
     cam = Camera(640, 480, f, f, 319.5, 239.5, pos, look_at(pos, target, 30.0))
-    depth, _, _ = render(scene_boxes(episode, ["success"] * len(boxes), load_scene("default")
-                                     .scene), fixture.room_floor_z, cam)
+    depth, _, _ = render(scene_boxes(episode, ["success"] * len(boxes),
+                                     load_scene("default").scene, DEFAULT_TABLE),
+                         fixture.room_floor_z, cam)
     return depth, Intrinsics(640, 480, f, f, 319.5, 239.5)
 
 

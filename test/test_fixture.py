@@ -108,7 +108,7 @@ def _camera_over(fixture: Fixture, distance=1.0, elevation=70.0, azimuth=20.0, f
 
 def test_rectangular_container_labels_sit_where_the_geometry_is():
     episode = _episode(INSIDE_LONG, OUTSIDE_SHORT)
-    boxes = scene_boxes(episode, ["success", "fell_outside"], SCENE)
+    boxes = scene_boxes(episode, ["success", "fell_outside"], SCENE, DEFAULT_TABLE)
     depth, labels, _ = render(boxes, TOTE.room_floor_z, _camera_over(TOTE))
     assert (labels == FIXTURE).sum() > 500
     for outcome in ("success", "fell_outside"):
@@ -203,15 +203,15 @@ def test_sensor_parameters_given_as_ranges_are_drawn_per_frame_and_recorded():
                         max_range=(3.5, 4.5)).validate()
     cfg = dataclasses.replace(DatasetConfig(), noise=noise).validate()
     episode = {"episode": 0, "container_yaw": 0.2, "floor_z": 0.0, "objects": []}
-    records = [render_episode({**episode, "episode": k}, [], cfg, seed=4)["record"]
+    records = [render_episode({**episode, "episode": k}, [], cfg, 4, DEFAULT_TABLE)["record"]
                for k in range(4)]
     sigmas = [r["sensor"]["sigma_disparity_px"] for r in records]
     assert all(0.03 <= s <= 0.12 for s in sigmas) and len(set(sigmas)) == 4
     assert all(r["sensor"]["speckle_max_radius_px"] in range(1, 6) for r in records)
     assert all(r["sensor"]["baseline"] == 0.075 for r in records)  # fixed stays fixed
-    again = render_episode({**episode, "episode": 2}, [], cfg, seed=4)
+    again = render_episode({**episode, "episode": 2}, [], cfg, 4, DEFAULT_TABLE)
     assert again["record"]["sensor"] == records[2]["sensor"]
-    fixed = render_episode(episode, [], DatasetConfig(), seed=4)["record"]
+    fixed = render_episode(episode, [], DatasetConfig(), 4, DEFAULT_TABLE)["record"]
     assert "sensor" not in fixed  # a spec without ranges records (and draws) nothing new
 
 
@@ -225,7 +225,7 @@ def test_a_share_of_frames_gets_the_tof_sensor_and_camera_info_has_its_own_error
         DatasetConfig(), tof=TofConfig(share=0.5, sigma_1m=(0.001, 0.004)),
         camera=CameraConfig(info_focal_error=0.04, info_principal_error_px=4.0)).validate()
     episode = {"episode": 0, "container_yaw": 0.2, "floor_z": 0.0, "objects": []}
-    records = [render_episode({**episode, "episode": k}, [], cfg, seed=2)["record"]
+    records = [render_episode({**episode, "episode": k}, [], cfg, 2, DEFAULT_TABLE)["record"]
                for k in range(16)]
     models = [r["sensor"]["model"] for r in records]
     assert {"tof", "kinect_v1"} == set(models)
@@ -236,10 +236,10 @@ def test_a_share_of_frames_gets_the_tof_sensor_and_camera_info_has_its_own_error
         assert info is r["camera_info"] and info["fx"] == info["fy"]
         assert abs(info["fx"] / true["fx"] - 1) <= 0.04 and info["fx"] != true["fx"]
         assert abs(info["cx"] - true["cx"]) <= 4.0 and abs(info["cy"] - true["cy"]) <= 4.0
-    again = render_episode({**episode, "episode": 5}, [], cfg, seed=2)["record"]
+    again = render_episode({**episode, "episode": 5}, [], cfg, 2, DEFAULT_TABLE)["record"]
     assert again["sensor"] == records[5]["sensor"]
     assert again["camera_info"] == records[5]["camera_info"]
-    plain = render_episode(episode, [], DatasetConfig(), seed=2)["record"]
+    plain = render_episode(episode, [], DatasetConfig(), 2, DEFAULT_TABLE)["record"]
     assert "camera_info" not in plain and reported_camera(plain) is plain["camera"]
 
 
@@ -257,7 +257,8 @@ def test_a_tilted_support_leans_gravity_and_looks_tilted_to_a_level_camera():
     camera, _ = draw_camera(cam_cfg, tilted, np.random.default_rng(0))
     episode = {"container_yaw": 0.0, "floor_z": 0.0, "fixture": tilted.to_record(),
                "objects": []}
-    depth, labels, _ = render(scene_boxes(episode, [], SCENE), tilted.room_floor_z, camera)
+    depth, labels, _ = render(scene_boxes(episode, [], SCENE, DEFAULT_TABLE), tilted.room_floor_z,
+                              camera)
     v, u = np.nonzero(labels == 0)
     x = (u - camera.cx) / camera.fx * depth[v, u]
     y = (v - camera.cy) / camera.fy * depth[v, u]

@@ -329,12 +329,15 @@ def test_onnx_export_records_the_label_table(tmp_path: Path) -> None:
     assert OutcomeSegmenter(default, backend="onnx").table == DEFAULT_TABLE
 
 
-def test_shipped_models_load_with_the_default_table() -> None:
-    """Shipped before tables travelled as data: a {name: id} table in the checkpoint, none in
-    the ONNX export. Both still serve, as the default task's."""
+def test_shipped_models_load_with_their_tables() -> None:
+    """The default and tote models were shipped before tables travelled as data (a {name: id}
+    table in the checkpoint, none in the ONNX export): both still serve, as the default
+    task's. Every shipped model serves through ONNX, with the checkpoint's table."""
+    for name in ("default", "tote"):
+        assert OutcomeSegmenter(name, backend="torch").table == DEFAULT_TABLE
     for name in inference.shipped_models():
         seg = OutcomeSegmenter(name, backend="auto")
-        assert seg.table is DEFAULT_TABLE
+        assert seg.table.outcome_names and seg.table.classes[0] == "background"
         if importlib.util.find_spec("onnxruntime") is not None:
             assert seg.backend == "onnx", seg.backend_reason
 

@@ -153,3 +153,50 @@ def test_hard_cases_follow_the_tasks_boundary():
     assert object_tags(object_measurements(ON_BOARD, _episode(ON_BOARD), SHELF.scene),
                        "footprint") == set()
     assert object_gap(m, "top") == pytest.approx(abs(m["top_above_region"]))
+
+
+# Digests of the first 30 episodes' draws (physics, fixture, camera) of seed 0, made by the
+# code before tables and fixtures became data (commit d836a58): those tasks' data must stay
+# what they were.
+DRAW_DIGESTS = {"default": "33689469f8c05215", "tote": "eecfd1578434643c"}
+
+
+@pytest.mark.parametrize("spec", sorted(DRAW_DIGESTS))
+def test_the_default_and_tote_tasks_draw_what_they_always_drew(spec):
+    import hashlib
+    import json
+    from dataclasses import asdict
+
+    from training.render import draw_camera
+    from training.seeding import episode_rng
+
+    cfg = load_scene(spec)
+    digest = hashlib.sha256()
+    for i in range(30):
+        d = draw_episode(cfg.scene, episode_rng(0, i, "simulate"), episode_rng(0, i, "fixture"))
+        fixture = {k: v for k, v in asdict(d.fixture).items() if k != "kind"}
+        cam, _ = draw_camera(cfg.camera, d.fixture, episode_rng(0, i, "render"))
+        record = [d.container_yaw, d.floor_z, d.friction, d.restitution, d.sizes, d.masses,
+                  d.start_positions, d.start_orientations, fixture, d.shapes,
+                  cam.position.tolist(), cam.rotation.tolist(), cam.fx, cam.cx, cam.cy]
+        digest.update(json.dumps(record, sort_keys=True).encode())
+    assert digest.hexdigest()[:16] == DRAW_DIGESTS[spec]
+
+
+def test_fixture_kinds_and_release_modes_are_checked_together(tmp_path):
+    import dataclasses
+
+    board = SHELF.scene
+    for change, match in (({"board_height": (0.02, 0.5)}, "board_height"),
+                          ({"place_edge_offset": (0.0, 0.3)}, "place_edge_offset"),
+                          ({"fixture": "open_box"}, "release_mode = 'place'")):
+        with pytest.raises(ConfigError, match=match):
+            dataclasses.replace(board, **change).validate()
+    with pytest.raises(ConfigError, match="reserved|none of"):
+        DiscoverConfig(outcome_names=(("inside", "iou"),)).validate()
+    # A board spec must give its outcomes words (the defaults are the container task's).
+    spec = tmp_path / "bare_shelf.yaml"
+    spec.write_text("name: bare_shelf\nscene: {fixture: board, release_mode: place}\n"
+                    "camera: {azimuth_frame: fixture}\n")
+    with pytest.raises(ConfigError, match="discover.outcome_names"):
+        load_scene(spec)

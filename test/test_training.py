@@ -18,6 +18,7 @@ from task_outcome_ros.labels import DEFAULT_TABLE, FIXTURE, outcomes_present, pr
 from task_outcome_ros.model import DEFAULT_NORMALISATION, check_normalisation
 from training.config import ConfigError, DiscoverConfig, TrainConfig
 from training.dataset import load_manifest
+from training.discover import load_outcomes
 from training.evaluate import confusion, evaluate
 from training.hard_cases import episode_hard_cases
 
@@ -253,6 +254,10 @@ def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
     cfg = TrainConfig(amp="auto")
     saved = json.loads(json.dumps(to_dict(TrainConfig(amp="bf16", max_minutes=5.0))))
     assert resume_differences(saved, cfg, "bf16", "bf16") == []
+    # Saved before near_rim_weight became near_boundary_weight: the same setting.
+    renamed = {("near_rim_weight" if k == "near_boundary_weight" else k): v
+               for k, v in saved.items()}
+    assert resume_differences(renamed, cfg, "bf16", "bf16") == []
     assert resume_differences(saved, cfg, "bf16", "fp32") == ["precision: bf16 -> fp32"]
     old = {k: v for k, v in saved.items() if k != "lovasz_weight"}     # predates the field
     assert resume_differences(old, cfg, "bf16", "bf16") == [
@@ -319,7 +324,7 @@ def test_shipped_checkpoint_labels_a_fresh_scene_sensibly(tmp_path):
         episode = simulate_episode(world, 987_654, i)
         outcomes = [task_word(geometric_outcome(object_measurements(o, episode, cfg.scene)))
                     for o in episode["objects"]]
-        shot = render_episode(episode, outcomes, cfg, 987_654)
+        shot = render_episode(episode, outcomes, cfg, 987_654, DEFAULT_TABLE)
         # With the camera the image was rendered with, as camera_info gives it to the node.
         result = seg.segment(shot["depth"], Intrinsics.from_record(shot["record"]["camera"]))
         assert result.labels.shape == shot["labels"].shape
@@ -361,27 +366,27 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
 
     cfg = dataset_config_from_dict(load_json(small_run / "config.json"))
     episodes = load_chunks(small_run / "simulate", cfg.episodes, cfg.chunk_size)
-    outcomes = load_json(small_run / "outcomes.json")["outcomes"]
-    depth, labels, k = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed, Stress())
+    outcomes, table = load_outcomes(small_run)
+    depth, labels, k = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed, Stress(), table)
     stored_depth, stored_labels = read_pair(small_run, 5)
     np.testing.assert_array_equal(labels, stored_labels)
     both = np.isfinite(depth) & np.isfinite(stored_depth)
     assert np.array_equal(np.isfinite(depth), np.isfinite(stored_depth))
     assert np.abs(depth[both] - stored_depth[both]).max() <= 0.0005 + 1e-6  # PNG: whole mm
     small, _, k_small = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
-                                       Stress(resolution="320x240", focal_error=0.08))
+                                       Stress(resolution="320x240", focal_error=0.08), table)
     assert small.shape == (240, 320) and k_small.fx == pytest.approx(k.fx / 2 * 1.08)
     assert stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
-                          Stress(camera_info=False))[2] is None
+                          Stress(camera_info=False), table)[2] is None
     tilted, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
-                                  Stress(support_tilt_deg=6.0))
+                                  Stress(support_tilt_deg=6.0), table)
     assert not np.allclose(np.nan_to_num(tilted), np.nan_to_num(depth))
 
     ckpt = make_checkpoint(tmp_path / "success_everywhere.pt", favour=SUCCESS)
     tof, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
-                               Stress(sensor_model="tof"))
+                               Stress(sensor_model="tof"), table)
     kinect, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
-                                  Stress(sensor_model="kinect_v1"))
+                                  Stress(sensor_model="kinect_v1"), table)
     assert not np.allclose(np.nan_to_num(tof), np.nan_to_num(kinect))
     sweeps = {"camera_roll_deg": (0.0, 10.0), "resolution": ("640x480", "320x240"),
               "sensor_model": ("", "tof")}
@@ -398,9 +403,10 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
         for value, got in zip(values, entry["image_all_correct"]):
             # The success-everywhere model is right exactly where only success is true.
             truths = [outcomes_present(stressed_frame(episodes[i], outcomes[i], cfg, cfg.seed,
-                                                      Stress(**{factor: value}))[1])
+                                                      Stress(**{factor: value}), table)[1],
+                                       table=table)
                       for i in val]
-            only = sum(t == {"success": True, "fell_outside": False, "stuck_on_rim": False}
+            only = sum(t == {name: name == "success" for name in table.outcome_names}
                        for t in truths)
             assert got == pytest.approx(only / len(val)), (factor, value)
     assert (tmp_path / "rob" / "robustness.png").stat().st_size > 5000
@@ -417,18 +423,18 @@ def test_the_independent_set_is_cast_by_pybullet_and_scored_by_evaluate(small_ru
 
     cfg = dataset_config_from_dict(load_json(small_run / "config.json"))
     episodes = load_chunks(small_run / "simulate", cfg.episodes, cfg.chunk_size)
-    outcomes = load_json(small_run / "outcomes.json")["outcomes"]
+    outcomes, table = load_outcomes(small_run)
     fixture = episode_fixture(episodes[1], cfg.scene)
     view = draw_view(cfg, fixture, np.random.default_rng(3))
     world = RayWorld()
     try:
         theirs, their_labels, _ = world.cast(view, world.build(episodes[1], outcomes[1],
-                                                               cfg.scene))
+                                                               cfg.scene, table))
     finally:
         world.close()
     camera = Camera(view["width"], view["height"], view["fx"], view["fy"], view["cx"],
                     view["cy"], np.array(view["position"]), np.array(view["rotation"]))
-    ours, our_labels, _ = render(scene_boxes(episodes[1], outcomes[1], cfg.scene),
+    ours, our_labels, _ = render(scene_boxes(episodes[1], outcomes[1], cfg.scene, table),
                                  fixture.room_floor_z, camera)
     assert np.mean(our_labels == their_labels) > 0.98
     both = np.isfinite(ours) & np.isfinite(theirs)

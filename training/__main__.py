@@ -239,7 +239,8 @@ def add_robustness_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=DEFAULT_OUT,
                    help="run folder (default: %(default)s)")
     p.add_argument("--checkpoint", default=None,
-                   help="a shipped model's name or a checkpoint (default: default)")
+                   help="a shipped model's name or a checkpoint (default: the run's "
+                        "train/best.pt, else the shipped model of the data's task)")
     p.add_argument("--data", type=Path, default=None,
                    help="dataset run whose validation episodes are re-rendered (default: --out)")
     p.add_argument("--images", type=positive_int, default=100,
@@ -276,12 +277,22 @@ def cmd_robustness(args) -> None:
 
     data = args.data or Path(args.out)
     out = args.eval_out or Path(data) / "robustness"  # beside the data it stressed
-    report = run_robustness(args.checkpoint, data, out, images=args.images)
+    report = run_robustness(args.checkpoint or _robustness_model(args, Path(data)), data, out,
+                            images=args.images)
     for factor, entry in report["factors"].items():
         pairs = ", ".join(f"{v}: {a:.3f}" for v, a in zip(entry["values"],
                                                           entry["image_all_correct"]))
         print(f"robustness {factor}: {pairs}")
     print(f"robustness: {report['images']} images per point -> {out / 'robustness.json'}")
+
+
+def _robustness_model(args, data: Path) -> str | Path:
+    """Without --checkpoint: the run's own best.pt, else the shipped model of the data's task
+    (a model of another task would be refused)."""
+    trained = Path(args.out) / "train" / "best.pt"
+    if trained.is_file():
+        return trained
+    return load_json(data / "config.json").get("task", "default")
 
 
 def add_independent_args(p: argparse.ArgumentParser) -> None:

@@ -48,6 +48,9 @@ SHAPES = ("box", "cylinder")
 FIXTURES = ("open_box", "board")   # training/fixture.py FIXTURE_KINDS
 # How discovery describes a cluster, in its target region's terms (training/discover.py).
 DESCRIPTORS = ("inside", "outside", "partly_inside")
+# Not outcome or fixture names: class 0, and the keys reports put beside the outcomes'.
+RESERVED_WORDS = ("background", "image_all_correct", "presence_precision", "presence_recall",
+                  "pixel_miou", "iou", "n_images", "mistakes", "confusion")
 NOISE_MODELS = ("kinect_v1",)   # noise: structured light; tof: a second, time-of-flight model
 
 
@@ -197,7 +200,21 @@ class SceneConfig:
         _check_range(o, "max_episode_time", self.max_episode_time, 0.5, 120.0)
         if self.table_size is not None:
             self._validate_table(o)
+        self._validate_kind(o)
         return self
+
+    def _validate_kind(self, o: str) -> None:
+        """What the fixture's kind and the release mode need of each other."""
+        if self.fixture == "board" and self.board_height[0] <= self.board_thickness:
+            raise ConfigError(f"{o}.board_height = {list(self.board_height)}: the board's top "
+                              f"must stand higher than its thickness ({self.board_thickness})")
+        if self.release_mode == "place" and self.fixture != "board":
+            raise ConfigError(f"{o}.release_mode = 'place' sets objects down over a board's "
+                              f"front edge; an {self.fixture} takes release_mode 'drop'")
+        if self.release_mode == "place" and self.place_edge_offset[1] >= self.board_depth[0]:
+            raise ConfigError(f"{o}.place_edge_offset = {list(self.place_edge_offset)}: the "
+                              f"deepest placement must stay on the shallowest board "
+                              f"(board_depth {list(self.board_depth)})")
 
     def _validate_shapes(self, o: str) -> None:
         names = [name for name, _ in self.shape_weights]
@@ -474,15 +491,16 @@ class DiscoverConfig:
     def _validate_names(self) -> None:
         names = dict(self.outcome_names)
         unknown = sorted(set(names) - set(DESCRIPTORS))
-        words = [*names.values(), self.fixture_name]
         if unknown or len(names) != len(self.outcome_names):
             raise ConfigError(f"discover.outcome_names: keys {unknown or list(names)} must be "
                               f"distinct descriptors from {DESCRIPTORS}")
+        # Every descriptor discovery may find gets a word (its own, when the spec has none).
+        words = [self.outcome_name(d) for d in DESCRIPTORS] + [self.fixture_name]
         bad = [w for w in words if not isinstance(w, str)
-               or not re.fullmatch(r"[a-z][a-z0-9_]*", w) or w == "background"]
+               or not re.fullmatch(r"[a-z][a-z0-9_]*", w) or w in RESERVED_WORDS]
         if bad or len(set(words)) != len(words):
             raise ConfigError(f"discover.outcome_names / fixture_name: {words} must be distinct "
-                              "lower-case words (a-z, 0-9, _), none of them 'background'")
+                              f"lower-case words (a-z, 0-9, _), none of {RESERVED_WORDS}")
 
     def outcome_name(self, descriptor: str) -> str:
         """The task's word for a descriptor (the descriptor itself when the spec has none)."""

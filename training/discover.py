@@ -7,15 +7,15 @@ distance, and likewise the height of the object's top, change smoothly from "ins
 "sticking out", so DBSCAN finds no density gap between them. Two measurements do have
 natural gaps:
 
-- ``com_edge``: how far the centre of mass lies beyond the region (beyond its footprint, or
-  below its bottom), in edge thicknesses (an open box's wall, a board's own thickness),
-  clipped to [-1, 2]. An object cannot balance on a 1-2 cm edge, so centres of mass are
-  inside the footprint (clipped to a dense spike at -1 once more than one thickness in) or
-  beyond the outer face by at least half the object's own thickness, or fallen far below a
-  board (a spike at 2): between lie only objects leaning over the edge, a wide, nearly empty
-  gap. Measured in half-widths instead (the first version), that gap was wall / half-width:
-  0.04 for the paper's 1 m container, but 0.025 for a 0.8 m tote with 1 cm walls, less than
-  DBSCAN's eps, and the stuck objects chained into the fallen ones on some seeds.
+- ``com_edge``: how far the centre of mass lies beyond the region (beyond its footprint, or,
+  once below the region, below its bottom), in edge thicknesses (an open box's wall, a board's
+  own thickness), clipped to [-1, 2]. An object cannot balance on a 1-2 cm edge, so centres of
+  mass are inside the footprint (clipped to a dense spike at -1 once more than one thickness
+  in) or beyond the outer face by at least half the object's own thickness, or fallen far
+  below a board (a spike at 2): between lie only objects leaning over the edge, a wide, nearly
+  empty gap. Measured in half-widths instead (the first version), that gap was wall / half-
+  width: 0.04 for the paper's 1 m container, but 0.025 for a 0.8 m tote with 1 cm walls, less
+  than DBSCAN's eps, and the stuck objects chained into the fallen ones on some seeds.
 - ``protrusion``: the fraction of the object's volume outside the region, on a log scale:
   log10(outside + PROTRUSION_OFFSET), mapped to [0, 1]. Objects fully inside sit exactly at 0
   (a dense spike); any part outside costs at least one grid point of

@@ -44,12 +44,19 @@ def confusion(truth: np.ndarray, pred: np.ndarray, num_classes: int) -> np.ndarr
                        minlength=num_classes ** 2).reshape(num_classes, num_classes)
 
 
-def same_task(model: LabelTable, data: LabelTable, model_path, data_dir) -> None:
-    """A model can only be scored on data labelled with its own classes."""
-    if model.classes != data.classes:
+def same_task(model: LabelTable, data: LabelTable, model_path, data_dir) -> np.ndarray:
+    """A model can only be scored on data of its own task: the same fixture, and outcomes it
+    knows (a small run may not have found them all). Returns the lookup table that maps the
+    data's label ids to the model's, by name (255 stays 255)."""
+    unknown = [name for name in data.outcome_names if name not in model.outcome_names]
+    if data.fixture_name != model.fixture_name or unknown:
         raise ValueError(f"model {model_path} knows the classes {list(model.classes)}, but "
                          f"{data_dir} is labelled with {list(data.classes)}: evaluate a model "
                          "of this task")
+    lut = np.full(256, IGNORE, np.uint8)
+    for data_id, name in enumerate(data.classes):
+        lut[data_id] = model.classes.index(name)
+    return lut
 
 
 def hard_case_report(rows: list[dict], cases: dict[int, HardCase] | None) -> dict:
@@ -99,7 +106,7 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
     seg = OutcomeSegmenter(model_path, presence_min_pixels=presence_min_pixels, backend=backend,
                            fragment_max_pixels=fragment_max_pixels)
     table = seg.table
-    same_task(table, manifest_table(manifest), seg.model_path, data_dir)
+    to_model_ids = same_task(table, manifest_table(manifest), seg.model_path, data_dir)
     k = table.num_classes
     conf = np.zeros((k, k), np.int64)
     truth_p, pred_p, rows, times = [], [], [], []
@@ -108,6 +115,7 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
                for im in images}
     for im in tqdm(images, desc=f"evaluate {split}", disable=not progress, unit="img"):
         depth, labels = read_pair(data_dir, im["episode"])
+        labels = to_model_ids[labels]
         result = seg.segment(depth, cameras[im["episode"]])
         times.append(result.inference_ms)
         t = outcomes_present(labels, presence_min_pixels, table)
@@ -145,7 +153,7 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
     out_dir.mkdir(parents=True, exist_ok=True)
     save_json(out_dir / "eval.json", report)
     plot_confusion(out_dir / "confusion.png", conf, table)
-    plot_examples(out_dir / "eval_examples.png", data_dir, rows, seg, cameras)
+    plot_examples(out_dir / "eval_examples.png", data_dir, rows, seg, cameras, to_model_ids)
     if "hard_cases" in report:
         plot_boundary_gap(out_dir / "boundary_gap.png",
                           report["hard_cases"]["by_boundary_gap"], report["image_all_correct"])
@@ -205,9 +213,11 @@ def plot_boundary_gap(path: Path, by_gap: list[dict], overall: float) -> None:
 
 
 def plot_examples(path: Path, data_dir: Path, rows: list[dict], seg: OutcomeSegmenter,
-                  cameras: dict[int, Intrinsics | None], n: int = 6) -> None:
+                  cameras: dict[int, Intrinsics | None], to_model_ids: np.ndarray,
+                  n: int = 6) -> None:
     """depth | truth | prediction | disagreement for mistakes first, then correct images;
-    ``cameras``: each episode's intrinsics as ``evaluate`` gave them to ``segment``."""
+    ``cameras``: each episode's intrinsics as ``evaluate`` gave them to ``segment``;
+    ``to_model_ids``: the data's label ids -> the model's (``same_task``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -221,6 +231,7 @@ def plot_examples(path: Path, data_dir: Path, rows: list[dict], seg: OutcomeSegm
                              squeeze=False)
     for row, r in zip(axes, chosen):
         depth, labels = read_pair(data_dir, r["episode"])
+        labels = to_model_ids[labels]
         pred = seg.segment(depth, cameras[r["episode"]]).labels
         wrong = (pred != labels) & (labels != IGNORE)
         names = lambda p: ", ".join(k for k, v in p.items() if v) or "nothing"  # noqa: E731

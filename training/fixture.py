@@ -235,20 +235,32 @@ def axis_angle_rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
 def fixture_from_record(record: dict) -> PlacedFixture:
     """The fixture an episode recorded (records without a kind are open boxes)."""
     record = dict(record)
-    cls = FIXTURE_KINDS[record.pop("kind", "open_box")]
+    kind = record.pop("kind", "open_box")
+    if kind not in FIXTURE_KINDS:
+        raise ValueError(f"fixture record of unknown kind {kind!r}; known: "
+                         f"{sorted(FIXTURE_KINDS)}")
     table = record.get("table")
-    return cls(**{**record, "table": Table(**table) if table else None})
+    return FIXTURE_KINDS[kind](**{**record, "table": Table(**table) if table else None})
 
 
 def episode_fixture(episode: dict, scene: SceneConfig) -> PlacedFixture:
     """The fixture an episode was simulated with. Episodes simulated before fixtures were
-    recorded had the spec's one square container at the origin."""
+    recorded had the spec's one square open box at the origin."""
     if "fixture" in episode:
         return fixture_from_record(episode["fixture"])
+    return first_fixture(scene, float(episode["container_yaw"]), float(episode["floor_z"]))
+
+
+def first_fixture(scene: SceneConfig, yaw: float = 0.0, base_z: float = 0.0) -> PlacedFixture:
+    """The spec's fixture at the low end of every range, at the origin (nothing drawn)."""
+    if scene.fixture == "board":
+        return Board(half_x=scene.board_width[0] / 2, half_y=scene.board_depth[0] / 2,
+                     height=scene.board_height[0], thickness=scene.board_thickness,
+                     clearance=scene.clearance, x=0.0, y=0.0, yaw=yaw, base_z=base_z)
     return Fixture(half_x=scene.inner_size_x[0] / 2, half_y=scene.inner_size_y[0] / 2,
                    wall_height=scene.wall_height[0], wall_thickness=scene.wall_thickness,
-                   bottom_thickness=scene.bottom_thickness, x=0.0, y=0.0,
-                   yaw=float(episode["container_yaw"]), base_z=float(episode["floor_z"]))
+                   bottom_thickness=scene.bottom_thickness, x=0.0, y=0.0, yaw=yaw,
+                   base_z=base_z)
 
 
 def _uniform(rng: np.random.Generator, interval: tuple[float, float]) -> float:

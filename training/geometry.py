@@ -10,7 +10,7 @@ from training.config import SceneConfig
 from training.fixture import PlacedFixture, episode_fixture
 
 # Sample points per box axis for volume fractions. The grid includes the box's faces, so a box
-# that pokes out of the container by any amount loses at least one point: "fully inside" is
+# that pokes out of the target region by any amount loses at least one point: "fully inside" is
 # exact, which is what separates "inside" from "partly inside" (see discover.py).
 SAMPLE_GRID = 10
 # Resting contacts interpenetrate by a few mm in Bullet; a box lying against an inner wall is
@@ -79,9 +79,10 @@ def object_measurements(obj: dict, episode: dict, scene: SceneConfig) -> dict[st
     - ``com_offset``: the centre of mass's offset from the footprint's centre, per axis in
       units of that axis's half-width, the larger of the two (< 1 over the footprint);
     - ``com_beyond_edge``: how far the centre of mass lies beyond the region, in edge
-      thicknesses: the larger of its distance beyond the footprint (the larger axis) and its
-      depth below the region's bottom. < 0 inside, 0-1 over the edge (a wall's top), > 1
-      beyond the fixture's outer footprint, or fallen below the region;
+      thicknesses: its distance beyond the footprint (the larger axis), or, when it lies
+      below the region's bottom, the larger of that and its depth below it. < 0 inside, 0-1
+      over the edge (a wall's top), > 1 beyond the fixture's outer footprint, or fallen
+      below the region;
     - ``com_beyond_outer``: 1.0 when the centre of mass is beyond the outer footprint
       (footprint plus edge) or more than an edge thickness below the region's bottom;
     - ``inside_fraction``: fraction of the object's volume inside the region (its footprint,
@@ -100,7 +101,11 @@ def object_measurements(obj: dict, episode: dict, scene: SceneConfig) -> dict[st
     com = fixture.to_frame(np.asarray(obj["position"]))
     over_xy = np.all(np.abs(pts[:, :2]) <= half_in + CONTACT_SLOP, axis=1)
     within_z = (pts[:, 2] >= region.bottom - CONTACT_SLOP) & (pts[:, 2] <= region.top)
-    beyond = max(float(np.max(np.abs(com[:2]) - half_in)), region.bottom - float(com[2]))
+    # Below the region's bottom counts only once the centre of mass is there (a board's fallen
+    # objects); above it, how far inside says nothing, so the spike at -1 stays a spike.
+    beyond = float(np.max(np.abs(com[:2]) - half_in))
+    if float(com[2]) < region.bottom:
+        beyond = max(beyond, region.bottom - float(com[2]))
     return {
         "com_offset": float(np.max(np.abs(com[:2]) / half_in)),
         "com_beyond_edge": beyond / region.edge,

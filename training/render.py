@@ -21,7 +21,6 @@ import numpy as np
 from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.labels import (
     BACKGROUND,
-    DEFAULT_TABLE,
     FIXTURE,
     LabelTable,
     outcome_pixel_counts,
@@ -128,7 +127,7 @@ class SceneBox:
 
 
 def scene_boxes(episode: dict, outcomes: list[str], scene: SceneConfig,
-                table: LabelTable = DEFAULT_TABLE) -> list[SceneBox]:
+                table: LabelTable) -> list[SceneBox]:
     """The fixture's solids, the room's (a wall), the table, and the objects, each with its
     pixel label (``table`` gives the outcomes' ids)."""
     fixture = episode_fixture(episode, scene)
@@ -275,7 +274,7 @@ def _cast_cylinder(cyl: SceneBox, camera: Camera, rays: np.ndarray, norm: np.nda
 
 
 def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
-                   table: LabelTable = DEFAULT_TABLE) -> dict:
+                   table: LabelTable) -> dict:
     """Camera draw, clean render and noise for one episode; returns arrays and the record."""
     index = episode["episode"]
     fixture = episode_fixture(episode, cfg.scene)
@@ -398,7 +397,7 @@ def _render_chunk(episodes: tuple[int, int]) -> dict:
 
 
 def run_render(run_dir: Path, cfg: DatasetConfig, episodes: list[dict],
-               outcomes: list[list[str]], table: LabelTable = DEFAULT_TABLE) -> list[dict]:
+               outcomes: list[list[str]], table: LabelTable) -> list[dict]:
     """Render every episode into <run>/images/ (resumable); returns the per-image records."""
     stage_dir = Path(run_dir) / "render"
     run_chunks(stage_dir, cfg.episodes, cfg.chunk_size, cfg.workers, _render_chunk, "render",

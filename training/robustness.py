@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.inference import OutcomeSegmenter
-from task_outcome_ros.labels import DEFAULT_TABLE, LabelTable, outcomes_present
+from task_outcome_ros.labels import LabelTable, outcomes_present
 from training.chunks import load_chunks
 from training.config import DatasetConfig, dataset_config_from_dict, save_json
 from training.dataset import load_manifest
@@ -71,7 +71,7 @@ class Stress:
 
 
 def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
-                   stress: Stress, table: LabelTable = DEFAULT_TABLE
+                   stress: Stress, table: LabelTable
                    ) -> tuple[np.ndarray, np.ndarray, Intrinsics | None]:
     """(noisy depth, noisy labels, the camera_info the model is given) of one episode: the
     dataset's own ``render_episode`` on the episode and config with the stress applied."""
@@ -150,7 +150,7 @@ def run_robustness(checkpoint: Path | None, data_dir: Path, out_dir: Path,
         raise ValueError(f"{data_dir}: no validation images to re-render")
     items = [(episodes[i], outcomes[i]) for i in val]
     seg = OutcomeSegmenter(checkpoint, backend="auto", num_threads=1)
-    same_task(seg.table, table, seg.model_path, data_dir)
+    same_task(seg.table, table, seg.model_path, data_dir)  # renders then use the model's ids
     sweeps = sweeps or SWEEPS
     report: dict = {"model": str(seg.model_path), "data": str(data_dir), "task": cfg.task,
                     "images": len(items), "factors": {}}

@@ -70,6 +70,7 @@ def load_scene(name_or_path: str | Path, **dataset_fields: Any) -> DatasetConfig
     Fields a spec leaves out keep the dataclass defaults, which are the default task's."""
     path = spec_path(name_or_path)
     name, sections = read_spec(path)
+    _require_words(path, sections)
     try:
         parts = {key: _from_dict(type(getattr(DatasetConfig(), key)), value or {})
                  for key, value in sections.items()}
@@ -77,3 +78,15 @@ def load_scene(name_or_path: str | Path, **dataset_fields: Any) -> DatasetConfig
                                    **dataset_fields).validate()
     except (ConfigError, TypeError) as exc:
         raise ConfigError(f"{path}: {exc}") from None
+
+
+def _require_words(path: Path, sections: dict[str, Any]) -> None:
+    """A spec of another fixture than the default task's open box must say what its outcomes
+    are called and how its yardstick judges "inside": the defaults are the default task's
+    (success, fell_outside, stuck_on_rim; the top below the rim)."""
+    fixture = (sections.get("scene") or {}).get("fixture", "open_box")
+    given = sections.get("discover") or {}
+    missing = [k for k in ("outcome_names", "fixture_name", "yardstick_inside") if k not in given]
+    if fixture != "open_box" and missing:
+        raise ConfigError(f"{path}: a {fixture} task needs discover.{', discover.'.join(missing)} "
+                          "(the defaults are the default task's container words)")

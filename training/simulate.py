@@ -21,7 +21,7 @@ import numpy as np
 
 from training.chunks import load_chunks, run_chunks
 from training.config import DatasetConfig, SceneConfig
-from training.fixture import PlacedFixture, Region, _uniform, draw_fixture, episode_fixture
+from training.fixture import PlacedFixture, Region, _uniform, draw_fixture, first_fixture
 from training.geometry import quat_to_matrix
 from training.seeding import episode_rng
 
@@ -200,8 +200,8 @@ class World:
                                      deterministicOverlappingPairs=1, physicsClientId=c)
         plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
         self.floor = pb.createMultiBody(0, plane, physicsClientId=c)
-        if fixture is None:  # the spec's first footprint, until an episode says otherwise
-            fixture = episode_fixture({"container_yaw": 0.0, "floor_z": 0.0}, scene)
+        if fixture is None:  # the spec's first fixture, until an episode says otherwise
+            fixture = first_fixture(scene)
         # Labels do not matter to physics: the fixture's and the room's solids are one body.
         boxes = fixture.solid_boxes() + fixture.background_boxes()
         shape = pb.createCollisionShapeArray(

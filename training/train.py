@@ -78,7 +78,8 @@ _DEFAULT_AXIAL = NoiseConfig().sigma_disparity_px / (CameraConfig().nominal_foca
 
 def task_normalisation(dataset: DatasetConfig) -> dict:
     """The network input's normalisation for a task: depth centred on the envelope's middle
-    distance, heights in units of the tallest wall (the rim sits at 1 or below), and the
+    distance, heights in units of the spec's ``height_scale`` (the tallest fixture top: an
+    open box's rim sits at 1 or below), and the
     envelope's middle focal length as the nominal camera. The default task's is exactly
     ``model.DEFAULT_NORMALISATION``. A task on a table measures heights from its top."""
     norm = dict(DEFAULT_NORMALISATION)
@@ -340,6 +341,8 @@ def near_boundary_sample_weights(run_dir: Path, indices: np.ndarray, weight: flo
 # compared by the precision it resolves to ("auto" and "bf16" are the same run on a CPU with
 # native bf16), device through that precision too.
 RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
+# Training fields saved under an older name: the same setting (a resume is not refused).
+RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
@@ -361,6 +364,7 @@ def resume_differences(saved: dict, cfg: TrainConfig, saved_precision: str | Non
     normalisations (both through ``check_normalisation``) are compared too: code changes
     such as the floor fit version change the inputs without changing the config."""
     now = json.loads(json.dumps(to_dict(cfg)))
+    saved = {RENAMED_TRAIN_FIELDS.get(k, k): v for k, v in saved.items()}
     differences = _field_differences(saved, now, ignore=RESUME_FREE_FIELDS)
     if saved_precision != precision:
         differences.append(f"precision: {saved_precision} -> {precision}")
