@@ -631,6 +631,37 @@ def test_shipped_tote_model_loads_by_name_and_knows_its_envelope(tmp_path):
         assert proc.stop() == 0
 
 
+def test_shipped_shelf_model_lists_the_shelfs_outcomes(tmp_path):
+    """model_path:=shelf starts the shipped shelf model, a task whose outcomes discovery
+    found: its status names them and carries its label table."""
+    import json
+
+    from task_outcome_ros import checkpoint
+    from task_outcome_ros.inference import resolve_model_path
+
+    shelf = checkpoint.load(resolve_model_path("shelf")).label_table
+    domain = (DOMAIN_ID + 71) % 200 + 1
+    proc = nh.NodeProcess(["-p", "model_path:=shelf"], domain, tmp_path / "node.log")
+    client = nh.OutcomeClient(domain)
+    try:
+        client.wait_for_node(proc)
+        msg = nh.depth_msg(scene(), stamp=client.next_stamp())
+        reply = client.request(msg, ("status", "labels"), resend_every=0.5)
+        check_reply(msg, reply, shelf)
+        assert "outcome_fcn_shelf.pt" in proc.log() and "hanging_over_edge (failure)" in \
+            proc.log()
+        values = nh.status_values(reply.status)
+        present = {k.removesuffix(".present") for k in values if k.endswith(".present")}
+        assert present == {"on_shelf", "fell_off", "hanging_over_edge"}
+        table = json.loads(values["label_table"])
+        assert [c["name"] for c in table] == ["background", "shelf", "on_shelf", "fell_off",
+                                              "hanging_over_edge"]
+        assert [c["failure"] for c in table][2:] == [False, True, True]
+    finally:
+        client.close()
+        assert proc.stop() == 0
+
+
 def _check_with_fresh_frames(client, checker, depth: np.ndarray, timeout: float = 15.0):
     """Call outcome/check and publish frames stamped now (the node's clock) until it answers."""
     from task_outcome_ros.client import parse

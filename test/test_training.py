@@ -54,7 +54,7 @@ def test_presence_rule_and_confusion_on_hand_made_label_images():
     pred = truth.copy()
     pred[0, 0] = STUCK_ON_RIM                  # an ignored pixel never counts
     pred[300:306, 300:308] = 0
-    conf = confusion(truth, pred)
+    conf = confusion(truth, pred, DEFAULT_TABLE.num_classes)
     assert conf.sum() == truth.size - 1
     assert conf[FELL_OUTSIDE, 0] == 48 and conf[STUCK_ON_RIM].sum() == 0
     # Half-size image: the threshold scales with the pixel count (50 * 1/4 -> 12.5 -> 12).
