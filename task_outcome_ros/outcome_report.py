@@ -9,6 +9,7 @@ failure modes and colours are the model's label table; the status carries that t
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from typing import Any, NamedTuple
@@ -95,6 +96,7 @@ def status_level(present: dict[str, bool], failures: tuple[str, ...]) -> int:
     return WARN if any(present.get(name, False) for name in failures) else OK
 
 
+@functools.lru_cache(maxsize=8)  # one table per model: encoded once, not every frame
 def label_table_value(table: L.LabelTable) -> str:
     """The status value ``label_table``: per class its id, name, colour and whether it is a
     failure mode, as compact JSON (clients learn the outcomes of any task from it)."""

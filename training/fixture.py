@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from task_outcome_ros.labels import BACKGROUND, FIXTURE
 from training.config import SceneConfig
 
 Box = tuple[tuple[float, float, float], tuple[float, float, float]]  # half extents, centre
@@ -129,6 +130,11 @@ class PlacedFixture:
     def background_boxes(self) -> list[Box]:
         """Static solids that belong to the room (label: background), in the fixture's frame."""
         return []
+
+    def labelled_boxes(self) -> list[tuple[int, Box]]:
+        """Every static solid with its pixel label: the fixture's, then the room's."""
+        return ([(FIXTURE, box) for box in self.solid_boxes()]
+                + [(BACKGROUND, box) for box in self.background_boxes()])
 
     def shape_key(self) -> tuple:
         """What the collision shapes depend on (not the pose, which is set per episode)."""

@@ -33,7 +33,6 @@ import numpy as np
 
 from task_outcome_ros.labels import (
     BACKGROUND,
-    FIXTURE,
     IGNORE,
     LabelTable,
     outcome_pixel_counts,
@@ -112,9 +111,7 @@ class RayWorld:
                                    physicsClientId=c)
         labels[floor] = BACKGROUND
         yaw = pb.getQuaternionFromEuler([0, 0, fixture.yaw])
-        solids = [(FIXTURE, box) for box in fixture.solid_boxes()]
-        solids += [(BACKGROUND, box) for box in fixture.background_boxes()]
-        for label, (half, centre) in solids:
+        for label, (half, centre) in fixture.labelled_boxes():
             box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(half),
                                           physicsClientId=c)
             pos, _ = pb.multiplyTransforms([fixture.x, fixture.y, fixture.base_z], yaw,

@@ -21,7 +21,6 @@ import numpy as np
 from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.labels import (
     BACKGROUND,
-    FIXTURE,
     LabelTable,
     outcome_pixel_counts,
     outcomes_present,
@@ -134,9 +133,7 @@ def scene_boxes(episode: dict, outcomes: list[str], scene: SceneConfig,
     rot = fixture.rotation
     base = np.array([fixture.x, fixture.y, fixture.base_z])
     boxes = [SceneBox(np.array(h), rot @ np.array(p) + base, rot, label)
-             for label, solids in ((FIXTURE, fixture.solid_boxes()),
-                                   (BACKGROUND, fixture.background_boxes()))
-             for h, p in solids]
+             for label, (h, p) in fixture.labelled_boxes()]
     ids = table.outcome_ids
     if fixture.table is not None:  # the support: background, like the room floor
         half, centre = fixture.table.box()
