@@ -10,7 +10,13 @@ import pytest
 
 from task_outcome_ros.labels import BACKGROUND, DEFAULT_TABLE, FIXTURE, LabelTable
 from training.config import ConfigError, DatasetConfig, DiscoverConfig
-from training.discover import DiscoveryError, cluster, describe_cluster, label_table
+from training.discover import (
+    DiscoveryError,
+    cluster,
+    dbscan_collapsed,
+    describe_cluster,
+    label_table,
+)
 from training.fixture import Board, fixture_from_record
 from training.geometry import geometric_outcome, object_measurements
 from training.hard_cases import object_gap, object_tags
@@ -135,6 +141,23 @@ def test_two_clusters_that_look_alike_are_an_error_not_a_merge():
     near = [{**m, "com_beyond_edge": 0.0} for m in _members("inside", 40)]
     with pytest.raises(DiscoveryError, match="2 clusters are 'inside'"):
         cluster(far + near, DatasetConfig())
+
+
+def test_dbscan_on_collapsed_copies_gives_dbscans_own_answer():
+    from sklearn.cluster import DBSCAN
+
+    rng = np.random.default_rng(5)
+    # Discovery's shape: two exact spikes of many copies, a spread cluster between them,
+    # and scattered points that end up as noise.
+    x = np.concatenate([np.tile([-1.0, 0.0], (300, 1)), np.tile([2.0, 1.0], (200, 1)),
+                        rng.normal([0.5, 0.5], 0.03, (150, 2)), rng.uniform(-1, 2, (40, 2))])
+    x = x[rng.permutation(len(x))]
+    for eps, min_samples in ((0.12, 10), (0.05, 30), (0.3, 5)):
+        expected = DBSCAN(eps=eps, min_samples=min_samples).fit(x)
+        labels, core = dbscan_collapsed(x, eps, min_samples)
+        np.testing.assert_array_equal(labels, expected.labels_)
+        assert set(np.flatnonzero(core)) == set(expected.core_sample_indices_)
+    assert len(set(labels)) > 2  # the clusters and the noise this test is about exist
 
 
 def test_outcome_names_are_validated():
