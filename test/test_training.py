@@ -291,6 +291,38 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
     assert torch.isfinite(ckpt.model(x)).all()
 
 
+def test_the_schedule_is_fitted_to_the_budget_after_the_first_epoch(small_run, tmp_path,
+                                                                   monkeypatch, capsys):
+    import itertools
+    import shutil
+    from types import SimpleNamespace
+
+    from training import train as train_module
+    from training.train import fitted_epochs
+
+    assert fitted_epochs(13, 240.0, 58.0) == 13        # 52 min: fits
+    assert fitted_epochs(13, 480.0, 58.0) == 7          # twice as slow: 7 epochs in 56 min
+    assert fitted_epochs(13, 7200.0, 58.0) == 1         # never below one epoch
+    run = tmp_path / "run"
+    shutil.copytree(small_run, run, ignore=shutil.ignore_patterns("train", "eval"))
+    # The trainer's clock, read at: start; epoch 1 start, end, budget check; epoch 2 start,
+    # end. Each epoch takes a minute, so three overrun a 2.5 minute budget: it spans two.
+    readings = itertools.chain([0.0, 0.0, 60.0, 60.0, 60.0, 120.0], itertools.repeat(120.0))
+    monkeypatch.setattr(train_module, "time",
+                        SimpleNamespace(perf_counter=lambda: next(readings)))
+    cfg = TrainConfig(epochs=3, batch_size=8, device="cpu", max_minutes=2.5)
+    train_module.train(run, cfg, progress=False)
+    assert "the schedule now spans 2 epochs" in capsys.readouterr().out
+    assert [h["epoch"] for h in json.loads((run / "train" / "history.json").read_text())] \
+        == [1, 2]
+    from task_outcome_ros import checkpoint
+
+    last = checkpoint.load(run / "train" / "last.pt")
+    assert last.extra["schedule_epochs"] == 2 and last.train_config["train"]["epochs"] == 3
+    train_module.train(run, cfg, progress=False)        # resumed: the fitted run is finished
+    assert len(json.loads((run / "train" / "history.json").read_text())) == 2
+
+
 def test_auto_precision_is_mixed_only_where_the_hardware_is_native(monkeypatch):
     from training import train
 

@@ -164,6 +164,17 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     return depth, valid, labels, intrinsics
 
 
+def fitted_epochs(epochs: int, epoch_s: float, max_minutes: float) -> int:
+    """The epochs the learning-rate schedule spans: ``epochs``, or fewer when ``epochs`` of
+    ``epoch_s`` seconds (the first epoch's time, validation included) would overrun the
+    budget. A CPU without native bf16 takes about twice as long a step as one with it, and
+    a schedule cut off by the budget would stop with its learning rate still high; fitted,
+    the cosine decays to zero within the budget on any machine."""
+    if epoch_s <= 0:
+        return epochs
+    return max(1, min(epochs, int(max_minutes * 60 // epoch_s)))
+
+
 def lr_at(step: int, total: int, base: float) -> float:
     warm = max(1, int(WARMUP_FRACTION * total))
     if step < warm:
@@ -437,7 +448,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
 
     n = len(train_arrays["indices"])
     steps_per_epoch = math.ceil(n / cfg.batch_size)
-    total_steps = cfg.epochs * steps_per_epoch
+    schedule_epochs = cfg.epochs  # fitted to the budget after the first epoch
     history: list[dict] = []
     start_epoch, best_key = 0, (-1.0, -1.0)
     last_path, best_path = out / "last.pt", out / "best.pt"
@@ -458,16 +469,18 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         average.updates = int(state.optimizer_state["average_updates"])
         history = state.extra["history"]
         start_epoch = len(history)
+        schedule_epochs = int(state.extra.get("schedule_epochs", cfg.epochs))
         best_key = tuple(state.extra["best_key"])
         print(f"resuming from {last_path} after epoch {start_epoch}")
 
     started = time.perf_counter()
-    for epoch in range(start_epoch, cfg.epochs):
+    for epoch in range(start_epoch, schedule_epochs):
+        total_steps = schedule_epochs * steps_per_epoch
         model.train()
         gen = torch.Generator().manual_seed(cfg.seed * 100_003 + epoch)
         order = epoch_order(n, sample_weights, gen)
         losses = []
-        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{cfg.epochs}",
+        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{schedule_epochs}",
                    disable=not progress, dynamic_ncols=True, mininterval=2.0)
         t_epoch = time.perf_counter()
         for b in bar:
@@ -488,12 +501,19 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         entry = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)),
                  "epoch_s": round(time.perf_counter() - t_epoch, 1), **metrics}
         history.append(entry)
+        if epoch == 0 and schedule_epochs > 1:
+            schedule_epochs = fitted_epochs(cfg.epochs, entry["epoch_s"], cfg.max_minutes)
+            if schedule_epochs < cfg.epochs:
+                print(f"train: {cfg.epochs} epochs of {entry['epoch_s']:.0f} s would overrun "
+                      f"the {cfg.max_minutes:g} min budget; the schedule now spans "
+                      f"{schedule_epochs} epochs")
         print(f"epoch {epoch + 1}: loss {entry['train_loss']:.4f} val all-correct "
               f"{metrics['image_all_correct']:.4f} mIoU {metrics['pixel_miou']:.4f} "
               f"({entry['epoch_s']} s)")
         key = (metrics["image_all_correct"], metrics["pixel_miou"])
         extra = {"history": history, "best_key": list(max(key, best_key)),
-                 "dataset": str(run_dir), "n_train": n, "precision": precision}
+                 "dataset": str(run_dir), "n_train": n, "precision": precision,
+                 "schedule_epochs": schedule_epochs}
         common = dict(model_args=model_args, label_table=table, input_size=cfg.input_size,
                       normalisation=norm,
                       train_config={"train": to_dict(cfg), "dataset": manifest["config"]},
@@ -507,7 +527,9 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
                         extra=extra)
         save_json(out / "history.json", history)
         plot_curves(out / "training_curves.png", history, cfg.lovasz_weight)
-        if (time.perf_counter() - started) / 60 > cfg.max_minutes and epoch + 1 < cfg.epochs:
+        if epoch + 1 >= schedule_epochs:  # the range above may be longer than the fit
+            break
+        if (time.perf_counter() - started) / 60 > cfg.max_minutes:  # slower than epoch 1
             print(f"stopping: the {cfg.max_minutes} min budget is spent; best kept")
             break
     return best_path
