@@ -74,13 +74,14 @@ def relative_paths(value: Any) -> Any:
     return value
 
 
-def record(section: str, data: dict, command: str) -> None:
+def record(section: str, data: dict, command: str, model: Path | None = None) -> None:
     """Merge one benchmark's figures into bench/results.json under ``section``, with the git
-    revision measured and the sha256 of the shipped model."""
+    revision measured and the sha256 of the model measured (``model``: a shipped model other
+    than the default task's; None: the default task's)."""
     results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    model = SHIPPED_MODEL if model is None else Path(model)
     provenance = {"git_revision": git_revision(),
-                  "shipped_model_sha256": sha256(SHIPPED_MODEL) if SHIPPED_MODEL.exists()
-                  else None}
+                  "shipped_model_sha256": sha256(model) if model.exists() else None}
     results[section] = relative_paths(
         {"command": command, "machine": machine(),
          "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), **provenance, **data})

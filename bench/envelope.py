@@ -61,7 +61,7 @@ def main() -> None:
         "images": len(images), "flagged": len(flagged),
         "flagged_fraction": round(len(flagged) / max(1, len(images)), 4),
         "reasons": dict(reasons), "flagged_episodes": flagged[:50],
-    }, command="python bench/envelope.py " + " ".join(sys.argv[1:]))
+    }, command="python bench/envelope.py " + " ".join(sys.argv[1:]), model=seg.model_path)
 
 
 if __name__ == "__main__":
