@@ -619,7 +619,9 @@ def test_shipped_tote_model_loads_by_name_and_knows_its_envelope(tmp_path):
     client = nh.OutcomeClient(domain)
     try:
         client.wait_for_node(proc)
-        assert "outcome_fcn_tote.pt" in proc.log()
+        # The start-up line may reach the log file after the topics are matched.
+        assert client.spin_until(lambda: "outcome_fcn_tote.pt" in proc.log(), 10.0), \
+            proc.log()
         msg = nh.depth_msg(scene(), stamp=client.next_stamp())
         reply = client.request(msg, ("status", "labels"), resend_every=0.5)
         check_reply(msg, reply)
@@ -648,7 +650,8 @@ def test_shipped_shelf_model_lists_the_shelfs_outcomes(tmp_path):
         msg = nh.depth_msg(scene(), stamp=client.next_stamp())
         reply = client.request(msg, ("status", "labels"), resend_every=0.5)
         check_reply(msg, reply, shelf)
-        assert "outcome_fcn_shelf.pt" in proc.log() and "hanging_over_edge (failure)" in \
+        assert client.spin_until(lambda: "outcome_fcn_shelf.pt" in proc.log()
+                                 and "hanging_over_edge (failure)" in proc.log(), 10.0), \
             proc.log()
         values = nh.status_values(reply.status)
         present = {k.removesuffix(".present") for k in values if k.endswith(".present")}
@@ -691,8 +694,9 @@ def test_a_model_of_another_task_speaks_its_own_outcomes(tmp_path):
     client = nh.OutcomeClient(domain)
     try:
         client.wait_for_node(proc)
-        assert ("outcomes on_shelf, fell_off (failure), hanging_over_edge (failure), tipped "
-                "(failure)") in proc.log()
+        outcomes = ("outcomes on_shelf, fell_off (failure), hanging_over_edge (failure), "
+                    "tipped (failure)")  # logged at start-up, maybe after the topics match
+        assert client.spin_until(lambda: outcomes in proc.log(), 10.0), proc.log()
         h, w = 48, 64
         depth = np.full((h, w), 2.0, np.float32)
 
