@@ -50,7 +50,7 @@ train: $(STAMP)
 
 # The shipped model of the task: 20,000 episodes, 13 epochs (tote model 0.6.0's recipe: a
 # 14-min dataset and 47 min of epochs on 2 cores in bf16; without native bf16 the schedule
-# fits the 58 min budget, about 7 epochs), installed into the package as the model named
+# fits the 58 min budget, about 5 epochs), installed into the package as the model named
 # after the task (model_path:=tote).
 ship: $(STAMP)
 	$(PY) -m training run --scene $(SCENE) --out runs/$(basename $(notdir $(SCENE))) \

@@ -654,9 +654,9 @@ class TrainConfig:
     max_width: int = 128
     decoder_convs: int = 1
     # Tote model 0.6.0: 13 epochs of 19,000 images, 47 min on 2 cores in bf16 (0.37 s a step
-    # in the loop). In fp32 a step takes about twice as long, and the schedule is fitted to
-    # max_minutes after the first epoch (train.fitted_epochs): about 7 epochs, as model 0.3.0
-    # trained (7 of 13,300 in 51 min, 1.05 s a step).
+    # in the loop). In fp32 a step takes about 1.05 s, and the schedule is fitted to
+    # max_minutes after the first epoch (train.fitted_epochs): about 5 epochs of 19,000
+    # (model 0.3.0 trained 7 of 13,300 in 51 min).
     epochs: int = 13
     batch_size: int = 32
     lr: float = 1.5e-3
