@@ -140,12 +140,9 @@ def dbscan_collapsed(x: np.ndarray, eps: float, min_samples: int
     core_unique[db.core_sample_indices_] = True
     labels, core = db.labels_[inverse], core_unique[inverse]
     # DBSCAN numbers clusters as it meets their first core point in input order.
-    first_core = {}
-    for i in np.flatnonzero(core):
-        first_core.setdefault(int(labels[i]), int(i))
-    order = sorted(first_core, key=first_core.get)
-    renumber = np.full(max(order, default=-1) + 2, -1)
-    renumber[[c + 1 for c in order]] = np.arange(len(order))
+    found, first_core = np.unique(labels[core], return_index=True)
+    renumber = np.full(len(found) + 1, -1)       # index 0: noise (-1) stays -1
+    renumber[found[np.argsort(first_core)] + 1] = np.arange(len(found))
     return renumber[labels + 1], core
 
 

@@ -501,7 +501,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         entry = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)),
                  "epoch_s": round(time.perf_counter() - t_epoch, 1), **metrics}
         history.append(entry)
-        if epoch == 0 and schedule_epochs > 1:
+        if epoch == 0:
             schedule_epochs = fitted_epochs(cfg.epochs, entry["epoch_s"], cfg.max_minutes)
             if schedule_epochs < cfg.epochs:
                 print(f"train: {cfg.epochs} epochs of {entry['epoch_s']:.0f} s would overrun "
