@@ -3,6 +3,7 @@
     python bench/node.py                  # 5 scenarios, 60 s of 30 Hz each (~7-8 min)
     python bench/node.py --seconds 120
     python bench/node.py --quick          # a smoke run (~1.5 min)
+    python bench/node.py --only shm_sensor_data_static   # one scenario, printed only
 
 Per scenario the node runs as its own process (the ``outcome_node`` console script, default
 parameters except model_path and qos) and a client process (bench/_node_client.py) publishes
@@ -50,6 +51,15 @@ BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
 SHM_PROFILE = REPO / "config" / "fastdds_shm.xml"
 PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+# name -> (input qos, Fast DDS SHM profile, static camera). Moving-camera frames refit the
+# support plane each time; the static one is what a cell's fixed camera gives the node.
+SCENARIOS = {
+    "shm_sensor_data_static": ("sensor_data", True, True),
+    "shm_sensor_data": ("sensor_data", True, False),
+    "noshm_sensor_data": ("sensor_data", False, False),
+    "shm_reliable": ("reliable", True, False),
+    "noshm_reliable": ("reliable", False, False),
+}
 
 
 def node_command() -> list[str]:
@@ -185,6 +195,8 @@ def main() -> None:
                         help="one-at-a-time frames in the best-effort scenarios (default 200)")
     parser.add_argument("--images", type=int, default=30, help="distinct frames to cycle")
     parser.add_argument("--quick", action="store_true", help="10 s throughput, 50 latency frames")
+    parser.add_argument("--only", choices=SCENARIOS, nargs="+", default=list(SCENARIOS),
+                        help="run these scenarios only (results.json is left unchanged)")
     args = parser.parse_args()
     if args.quick:
         args.seconds, args.latency_frames, args.images = 10.0, 50, 10
@@ -199,12 +211,8 @@ def main() -> None:
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="bench_node_") as tmp:
         model, model_desc = prepare_model(Path(tmp))
-        # (qos, shm, static camera): the moving-camera frames refit the support plane each
-        # time; the static one is what a cell's fixed camera gives the node.
-        plan = [("sensor_data", True, True), ("sensor_data", True, False),
-                ("sensor_data", False, False), ("reliable", True, False),
-                ("reliable", False, False)]
-        for qos, shm, static in plan:
+        for name in args.only:
+            qos, shm, static = SCENARIOS[name]
             lat = args.latency_frames if qos == "sensor_data" else 0
             timeout = 240 + args.seconds * 2 + lat * 0.5
             print(f"[bench/node] scenario shm={shm} qos={qos} static={static} ...", flush=True)
@@ -212,6 +220,8 @@ def main() -> None:
                              timeout, static)
             print(f"[bench/node]   {json.dumps(summary(s))}", flush=True)
             scenarios.append(s)
+    if len(args.only) < len(SCENARIOS):  # a diagnosis run: printed, not recorded
+        return
     if not all(s.get("ok") for s in scenarios):
         for s in scenarios:
             if not s.get("ok"):
