@@ -91,7 +91,7 @@ def process_frame(segmenter: Any, msg: Any, camera_info: Any | None, *,
     try:
         # The intrinsics also set the network's height channel when the model was trained
         # with them (OutcomeSegmenter.uses_intrinsics); otherwise the nominal camera.
-        result = segmenter.segment(depth, intrinsics)
+        result = segmenter.segment(depth, intrinsics, sanitized=True)  # decode_depth's
     except Exception as exc:  # one frame the model cannot take never stops the caller
         return failed(f"inference failed on a {width} x {height} frame: {exc}")
     labels = np.ascontiguousarray(result.labels, dtype=np.uint8)

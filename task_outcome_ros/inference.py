@@ -308,15 +308,16 @@ class OutcomeSegmenter:
         that passing them to ``segment`` (camera_info on the robot) matters."""
         return self.normalisation.get("intrinsics") == INTRINSICS_FROM_CAMERA_INFO
 
-    def segment(self, depth_m: np.ndarray, intrinsics: Intrinsics | None = None
-                ) -> OutcomeResult:
+    def segment(self, depth_m: np.ndarray, intrinsics: Intrinsics | None = None, *,
+                sanitized: bool = False) -> OutcomeResult:
         """Label one depth image (H x W metres, NaN/0/inf invalid) of any size.
 
         ``intrinsics``: the image's camera (camera_info), for a network trained with them
         (``uses_intrinsics``); None falls back to the envelope's nominal camera. They must be
-        for this image's size."""
+        for this image's size. ``sanitized``: ``depth_m`` comes from ``depth.decode_depth`` or
+        ``depth.sanitize_depth`` (float32, NaN invalid), so it is used as it is, uncopied."""
         t0 = time.perf_counter()
-        depth = sanitize_depth(_validate_depth(depth_m))
+        depth = depth_m if sanitized else sanitize_depth(_validate_depth(depth_m))
         if intrinsics is not None and (intrinsics.height, intrinsics.width) != depth.shape:
             raise ValueError(f"intrinsics are for a {intrinsics.width} x {intrinsics.height} "
                              f"image, the depth image is {depth.shape[1]} x {depth.shape[0]}")
@@ -324,21 +325,23 @@ class OutcomeSegmenter:
         x = None
         if self.floor_tracker is not None:
             self.floor_tracker.last = None  # set again only if this frame's heights use it
-        if np.isfinite(depth).any():
+        valid = np.isfinite(depth)  # once per frame: postprocess and the stats reuse it
+        if valid.any():
             x = self.prepare(depth, intrinsics)
             small = self._predict_small(x)
-        result = self.postprocess(small, depth)
+        result = self.postprocess(small, depth, valid)
         if self.floor_tracker is not None:
             result.support_plane = self.floor_tracker.last
-        result.stats = self._frame_stats(x, small, depth)
+        result.stats = self._frame_stats(x, small, valid)
         result.outside_envelope = check(self.envelope, result.stats, intrinsics)
         result.envelope_checked = self.envelope is not None
         result.inference_ms = (time.perf_counter() - t0) * 1e3
         return result
 
     def _frame_stats(self, x: np.ndarray | None, small: np.ndarray | None,
-                     depth: np.ndarray) -> FrameStats:
-        """The envelope check's inputs, from the working-size input and labels (cheap)."""
+                     valid: np.ndarray) -> FrameStats:
+        """The envelope check's inputs, from the working-size input and labels (cheap), and
+        ``valid``, the full-resolution frame's finite-depth mask."""
         if x is None or small is None:
             return FrameStats(0.0, None, None, 0.0)
         norm = self.normalisation
@@ -348,8 +351,9 @@ class OutcomeSegmenter:
         if "height_scale_m" in norm:
             heights = np.where(valid, x[2] * norm["height_scale_m"], np.nan)
         stats = frame_stats(metres, small, heights, FIXTURE)
-        # The valid share of the full-resolution frame, not of the working size.
-        return FrameStats(float(np.isfinite(depth).mean()), stats.median_depth_m,
+        # The valid share of the full-resolution frame, not of the working size
+        # (count_nonzero: a bool mean converts every pixel to float first).
+        return FrameStats(np.count_nonzero(valid) / valid.size, stats.median_depth_m,
                           stats.support_fraction, stats.fixture_fraction)
 
     def prepare(self, depth: np.ndarray, intrinsics: Intrinsics | None = None) -> np.ndarray:
@@ -360,11 +364,13 @@ class OutcomeSegmenter:
         return preprocess_sanitized(depth, self.input_size, self.normalisation, k,
                                     self.floor_tracker)
 
-    def postprocess(self, small: np.ndarray | None, depth: np.ndarray) -> OutcomeResult:
+    def postprocess(self, small: np.ndarray | None, depth: np.ndarray,
+                    valid: np.ndarray | None = None) -> OutcomeResult:
         """Everything ``segment`` does after the network (also timed alone by the bench).
 
         ``small``: working-size uint8 labels, or None for a frame without valid depth;
-        ``depth``: the sanitised input depth (NaN invalid), which sets the output size.
+        ``depth``: the sanitised input depth (NaN invalid), which sets the output size;
+        ``valid``: ``np.isfinite(depth)`` if the caller has it already.
         """
         h, w = depth.shape
         if small is None:
@@ -378,7 +384,7 @@ class OutcomeSegmenter:
             # No measurement, no claim: the training labels of pixels without depth are
             # "ignore", so the net's guess there is unsupervised; calling them background keeps
             # pixel counts comparable with the presence rule's truth (valid pixels only).
-            labels[~np.isfinite(depth)] = BACKGROUND
+            labels[~(np.isfinite(depth) if valid is None else valid)] = BACKGROUND
         threshold = presence_threshold(h, w, self.presence_min_pixels)
         counts = outcome_pixel_counts(labels, self.table)
         present = presence_from_counts(counts, threshold)  # one pass over the image, not two

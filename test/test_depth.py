@@ -11,7 +11,7 @@ import struct
 import numpy as np
 import pytest
 
-from task_outcome_ros.depth import DepthDecodeError, decode_depth, encode_depth
+from task_outcome_ros.depth import DepthDecodeError, decode_depth, encode_depth, sanitize_depth
 
 pytestmark = pytest.mark.unit
 
@@ -59,6 +59,20 @@ def test_inf_and_negative_values_are_invalid():
     data = _rows([[float("inf"), -1.0, 2.0]], "<f")
     got = decode_depth("32FC1", 1, 3, 12, False, data)
     assert np.isnan(got[0, :2]).all() and got[0, 2] == 2.0
+
+
+def test_decoding_leaves_the_message_buffer_alone():
+    values = np.array([[np.inf, -1.0, 2.0, np.nan]], "<f4")
+    buffer = values.view(np.uint8).ravel().copy()
+    got = decode_depth("32FC1", 1, 4, 16, False, buffer)
+    assert np.isnan(got[0, [0, 1, 3]]).all() and got[0, 2] == 2.0
+    np.testing.assert_array_equal(buffer.view("<f4"), values.ravel())  # inf, -1 still there
+
+
+def test_sanitize_copies_unless_asked_not_to():
+    depth = np.array([[0.0, 1.5, -np.inf]], np.float32)
+    assert np.isnan(sanitize_depth(depth)[0, [0, 2]]).all() and depth[0, 0] == 0.0
+    assert sanitize_depth(depth, copy=False) is depth and np.isnan(depth[0, [0, 2]]).all()
 
 
 def test_numpy_buffer_in_is_the_same_as_bytes():

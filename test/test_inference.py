@@ -13,6 +13,7 @@ import torch
 from task_outcome_ros import checkpoint, inference
 from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.checkpoint import CheckpointError
+from task_outcome_ros.depth import sanitize_depth
 from task_outcome_ros.inference import (
     OutcomeSegmenter,
     count_objects,
@@ -399,3 +400,16 @@ def test_reuse_floor_fit_reports_what_each_frame_did(ckpt: Path) -> None:
     assert seg.segment(depth).support_plane == "kept"
     assert seg.segment(np.full_like(depth, np.nan)).support_plane is None
     assert OutcomeSegmenter(ckpt, backend="torch").segment(depth).support_plane is None
+
+
+def test_a_sanitised_frame_is_segmented_as_it_is(segmenter: OutcomeSegmenter) -> None:
+    """``sanitized=True`` (the node's decoded frames) skips the copy, not the answer."""
+    raw = _scene(480, 640, seed=3)
+    raw[0, :7] = [0.0, -1.0, np.inf, -np.inf, np.nan, 1e-9, 2.5]
+    clean = sanitize_depth(raw)
+    before = clean.copy()
+    got = segmenter.segment(clean, sanitized=True)
+    want = segmenter.segment(raw)
+    np.testing.assert_array_equal(got.labels, want.labels)
+    assert got.pixel_counts == want.pixel_counts and got.stats == want.stats
+    np.testing.assert_array_equal(clean, before)  # used, not written
