@@ -339,21 +339,21 @@ class OutcomeSegmenter:
         return result
 
     def _frame_stats(self, x: np.ndarray | None, small: np.ndarray | None,
-                     valid: np.ndarray) -> FrameStats:
+                     frame_valid: np.ndarray) -> FrameStats:
         """The envelope check's inputs, from the working-size input and labels (cheap), and
-        ``valid``, the full-resolution frame's finite-depth mask."""
+        ``frame_valid``, the full-resolution frame's finite-depth mask."""
         if x is None or small is None:
             return FrameStats(0.0, None, None, 0.0)
         norm = self.normalisation
-        valid = x[1] > 1e-6
-        metres = np.where(valid, x[0] * norm["scale_m"] + norm["offset_m"], np.nan)
+        working_valid = x[1] > 1e-6
+        metres = np.where(working_valid, x[0] * norm["scale_m"] + norm["offset_m"], np.nan)
         heights = None
         if "height_scale_m" in norm:
-            heights = np.where(valid, x[2] * norm["height_scale_m"], np.nan)
+            heights = np.where(working_valid, x[2] * norm["height_scale_m"], np.nan)
         stats = frame_stats(metres, small, heights, FIXTURE)
         # The valid share of the full-resolution frame, not of the working size
         # (count_nonzero: a bool mean converts every pixel to float first).
-        return FrameStats(np.count_nonzero(valid) / valid.size, stats.median_depth_m,
+        return FrameStats(np.count_nonzero(frame_valid) / frame_valid.size, stats.median_depth_m,
                           stats.support_fraction, stats.fixture_fraction)
 
     def prepare(self, depth: np.ndarray, intrinsics: Intrinsics | None = None) -> np.ndarray:

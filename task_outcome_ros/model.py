@@ -121,7 +121,8 @@ def resize_depth(depth_m: np.ndarray, input_size: tuple[int, int],
     valid input under them) get depth 0 and fraction 0.
     """
     w, h = input_size
-    # fmax skips NaN: 0 where invalid, the depth (> 0) elsewhere; one pass, unlike np.where.
+    # fmax skips NaN: 0 where invalid, the depth (> 0) elsewhere (sanitised input has no inf);
+    # one pass, unlike np.where.
     filled = np.fmax(depth_m, np.float32(0)).astype(np.float32, copy=False)
     mask = np.isfinite(depth_m).astype(np.float32)
     if depth_m.shape != (h, w):

@@ -413,3 +413,7 @@ def test_a_sanitised_frame_is_segmented_as_it_is(segmenter: OutcomeSegmenter) ->
     np.testing.assert_array_equal(got.labels, want.labels)
     assert got.pixel_counts == want.pixel_counts and got.stats == want.stats
     np.testing.assert_array_equal(clean, before)  # used, not written
+    # The envelope's valid share is the full frame's (5 % holes), not the working size's,
+    # where almost every pixel has some valid depth under it.
+    assert got.stats.valid_fraction == pytest.approx(np.isfinite(clean).mean(), abs=1e-9)
+    assert got.stats.valid_fraction < 0.97
