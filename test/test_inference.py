@@ -41,20 +41,21 @@ SUCCESS_ID, FELL_ID, STUCK_ID = (DEFAULT_TABLE.outcome_ids[name] for name in
 
 
 def _make_checkpoint(path: Path, seed: int = 0, normalisation: dict = DEFAULT_NORMALISATION,
-                     table: LabelTable = DEFAULT_TABLE) -> Path:
+                     table: LabelTable = DEFAULT_TABLE, input_size: tuple[int, int] = INPUT_SIZE,
+                     **model_args) -> Path:
     torch.manual_seed(seed)
-    args = {**ARGS, "num_classes": table.num_classes}
+    args = {**ARGS, "num_classes": table.num_classes, **model_args}
     model = OutcomeFCN(**args)
     # BN statistics from real inputs, so random-init labels vary over the image (a
     # backend comparison on a constant label image would prove nothing).
-    batch = torch.from_numpy(np.stack([preprocess(_scene(120, 160, s), INPUT_SIZE)
+    batch = torch.from_numpy(np.stack([preprocess(_scene(120, 160, s), input_size)
                                        for s in range(4)]))
     model.train()
     with torch.no_grad():
         model.head.bias.zero_()
         for _ in range(20):
             model(batch)
-    return checkpoint.save(path, model, model_args=args, input_size=INPUT_SIZE,
+    return checkpoint.save(path, model, model_args=args, input_size=input_size,
                            normalisation=normalisation, train_config={}, metrics={},
                            label_table=table)
 
@@ -248,6 +249,23 @@ def test_onnx_and_torch_backends_agree(onnx_ckpt: Path) -> None:
         total += a.labels.size
         assert len(np.unique(b.labels)) > 1  # a meaningful comparison, not all background
     assert agree / total >= 0.999
+
+
+def test_a_space_to_depth_network_exports_and_agrees(tmp_path: Path) -> None:
+    """Pixel unshuffle and the bilinear logit upsampling survive the ONNX export: both
+    backends label a frame alike at a working size twice as fine (320 x 240)."""
+    pytest.importorskip("onnxruntime")
+    from task_outcome_ros.onnx_export import export_onnx
+
+    path = _make_checkpoint(tmp_path / "outcome_fcn.pt", seed=3, input_size=(320, 240),
+                            space_to_depth=2)
+    export_onnx(path)
+    seg_onnx = OutcomeSegmenter(path, backend="onnx")
+    seg_torch = OutcomeSegmenter(path, backend="torch")
+    depth = _scene(480, 640, 5)
+    a, b = seg_onnx.segment(depth), seg_torch.segment(depth)
+    assert a.labels.shape == (480, 640) and len(np.unique(b.labels)) > 1
+    assert (a.labels == b.labels).mean() >= 0.999
 
 
 def test_auto_backend_falls_back_when_onnx_is_stale(onnx_ckpt: Path, tmp_path: Path) -> None:

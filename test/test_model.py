@@ -30,12 +30,40 @@ def test_any_input_size_keeps_size(h: int, w: int) -> None:
     assert out.shape == (2, DEFAULT_TABLE.num_classes, h, w)
 
 
+@pytest.mark.parametrize("h,w", [(48, 64), (33, 97), (17, 16)])
+def test_space_to_depth_keeps_size_and_doubles_the_stride(h: int, w: int) -> None:
+    model = OutcomeFCN(base_width=4, levels=3, space_to_depth=2).eval()
+    assert model.stride == 16 and model.stem[0].in_channels == 4 * IN_CHANNELS
+    with torch.inference_mode():
+        out = model(torch.randn(2, IN_CHANNELS, h, w))
+    assert out.shape == (2, DEFAULT_TABLE.num_classes, h, w)
+
+
+def test_space_to_depth_sees_sub_pixel_detail() -> None:
+    """Each of the 4 pixels of a 2 x 2 block reaches the stem through its own weights: a
+    change of one fine pixel changes the logits (an average-pool stem could not tell which
+    of the four changed)."""
+    torch.manual_seed(0)
+    model = OutcomeFCN(base_width=4, levels=2, space_to_depth=2).eval()
+    x = torch.zeros(1, IN_CHANNELS, 16, 16)
+    outs = []
+    for dy, dx in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        xi = x.clone()
+        xi[0, 0, 8 + dy, 8 + dx] = 1.0
+        with torch.inference_mode():
+            outs.append(model(xi))
+    for i in range(4):
+        for j in range(i + 1, 4):
+            assert not torch.allclose(outs[i], outs[j])
+
+
 def test_build_model_from_default_args() -> None:
     model = build_model(DEFAULT_MODEL_ARGS)
     assert model.stride == 2 ** DEFAULT_MODEL_ARGS["levels"]
 
 
-@pytest.mark.parametrize("kwargs", [{"levels": 0}, {"base_width": 1}, {"decoder_convs": 3}])
+@pytest.mark.parametrize("kwargs", [{"levels": 0}, {"base_width": 1}, {"decoder_convs": 3},
+                                    {"space_to_depth": 3}])
 def test_bad_constructor_args(kwargs: dict) -> None:
     with pytest.raises(ValueError):
         OutcomeFCN(**kwargs)
@@ -95,13 +123,14 @@ def _box_scenes(n: int, h: int, w: int, rng: np.random.Generator):
     return depths, labels
 
 
-def test_model_overfits_tiny_batch() -> None:
+@pytest.mark.parametrize("space_to_depth", [1, 2])
+def test_model_overfits_tiny_batch(space_to_depth: int) -> None:
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     depths, labels = _box_scenes(4, 48, 64, rng)
     x = preprocess_batch(torch.from_numpy(depths), (64, 48))
     y = torch.from_numpy(labels)
-    model = OutcomeFCN(base_width=8, levels=3)
+    model = OutcomeFCN(base_width=8, levels=3, space_to_depth=space_to_depth)
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
     losses = []
     for _ in range(150):

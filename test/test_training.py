@@ -3,6 +3,8 @@ on a freshly generated dataset, and a proof of life of the shipped checkpoint.""
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import subprocess
 import sys
@@ -258,6 +260,11 @@ def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
     renamed = {("near_rim_weight" if k == "near_boundary_weight" else k): v
                for k, v in saved.items()}
     assert resume_differences(renamed, cfg, "bf16", "bf16") == []
+    # Saved before space_to_depth existed: every such run had none (1), the same setting.
+    unfolded = {k: v for k, v in saved.items() if k != "space_to_depth"}
+    assert resume_differences(unfolded, cfg, "bf16", "bf16") == []
+    assert resume_differences(unfolded, dataclasses.replace(cfg, space_to_depth=2), "bf16",
+                              "bf16") == ["space_to_depth: 1 -> 2"]
     assert resume_differences(saved, cfg, "bf16", "fp32") == ["precision: bf16 -> fp32"]
     old = {k: v for k, v in saved.items() if k != "lovasz_weight"}     # predates the field
     assert resume_differences(old, cfg, "bf16", "bf16") == [

@@ -136,6 +136,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch-size", type=positive_int, default=None)
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--base-width", type=positive_int, default=None, help="FCN width")
+    p.add_argument("--space-to-depth", type=int, choices=(1, 2), default=None,
+                   help="2: fold 2 x 2 input pixels into channels and upsample the logits "
+                        "back, a twice-finer --input-size at about the network cost of the "
+                        "coarser one (default 1)")
     p.add_argument("--input-size", type=int, nargs=2, metavar=("W", "H"), default=None,
                    help="working resolution (default 160 120)")
     p.add_argument("--max-minutes", type=float, default=None, help="training time budget")
@@ -175,7 +179,7 @@ def resolve_train_config(args: argparse.Namespace):
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
               "channels_last": "channels_last", "near_boundary_weight": "near_boundary_weight",
               "aug_noise": "aug_noise", "lovasz_weight": "lovasz_weight",
-              "camera_intrinsics": "camera_intrinsics"}
+              "camera_intrinsics": "camera_intrinsics", "space_to_depth": "space_to_depth"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
     if args.input_size is not None:
         overrides["input_size"] = tuple(args.input_size)

@@ -354,6 +354,8 @@ def near_boundary_sample_weights(run_dir: Path, indices: np.ndarray, weight: flo
 RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
 # Training fields saved under an older name: the same setting (a resume is not refused).
 RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
+# Training fields added later, with the value every run before them had (not a difference).
+ADDED_TRAIN_FIELDS = {"space_to_depth": 1}
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
@@ -375,7 +377,8 @@ def resume_differences(saved: dict, cfg: TrainConfig, saved_precision: str | Non
     normalisations (both through ``check_normalisation``) are compared too: code changes
     such as the floor fit version change the inputs without changing the config."""
     now = json.loads(json.dumps(to_dict(cfg)))
-    saved = {RENAMED_TRAIN_FIELDS.get(k, k): v for k, v in saved.items()}
+    saved = {**ADDED_TRAIN_FIELDS,
+             **{RENAMED_TRAIN_FIELDS.get(k, k): v for k, v in saved.items()}}
     differences = _field_differences(saved, now, ignore=RESUME_FREE_FIELDS)
     if saved_precision != precision:
         differences.append(f"precision: {saved_precision} -> {precision}")
