@@ -495,3 +495,18 @@ def test_the_independent_set_is_cast_by_pybullet_and_scored_by_evaluate(small_ru
     assert again["images"] == manifest["images"]
     with pytest.raises(ValueError, match="another independent set"):
         make_independent_set(small_run, out, 3, seed=2, workers=1)
+
+
+def test_class_weights_count_a_large_cache_in_chunks():
+    """Counted 256 images at a time (a whole-cache bincount held 8 bytes a pixel and was
+    killed for memory at 320 x 240): the same weights as one count over everything."""
+    from training.train import class_weights
+
+    rng = np.random.default_rng(0)
+    labels = rng.choice(5, size=(600, 6, 8), p=[0.6, 0.2, 0.1, 0.07, 0.03]).astype(np.uint8)
+    labels[:, 0, 0] = 4
+    counts = np.bincount(labels.ravel(), minlength=5).astype(np.float64)
+    expected = (counts.sum() / counts) ** 0.3
+    got = class_weights(labels, 0.3, 5).numpy()
+    np.testing.assert_allclose(got, expected / expected.mean(), rtol=1e-6)
+    assert got[0] < got[1] < got[2] < got[3] < got[4]

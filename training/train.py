@@ -101,7 +101,12 @@ def sensor_noise_ratio(dataset: DatasetConfig) -> float:
 
 def class_weights(labels: np.ndarray, power: float, num_classes: int) -> torch.Tensor:
     """(1 / frequency) ** power, normalised to mean 1; unseen classes get the largest weight."""
-    counts = np.bincount(labels.ravel(), minlength=256)[:num_classes].astype(np.float64)
+    # In chunks of images: bincount casts to int64, 8 bytes per pixel, and a whole 20,000-image
+    # cache at 320 x 240 would take 12 GB at once (the run was killed for memory).
+    counts = np.zeros(256, np.float64)
+    for start in range(0, len(labels), 256):
+        counts += np.bincount(labels[start:start + 256].ravel(), minlength=256)
+    counts = counts[:num_classes]
     freq = counts / max(1.0, counts.sum())
     w = np.where(freq > 0, (1.0 / np.maximum(freq, 1e-12)) ** power, 0.0)
     w[freq == 0] = w.max() if w.max() > 0 else 1.0
