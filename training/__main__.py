@@ -137,9 +137,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--base-width", type=positive_int, default=None, help="FCN width")
     p.add_argument("--space-to-depth", type=int, choices=(1, 2), default=None,
-                   help="2: fold 2 x 2 input pixels into channels and upsample the logits "
-                        "back, a twice-finer --input-size at about the network cost of the "
-                        "coarser one (default 1)")
+                   help="2: fold 2 x 2 input pixels into channels, run the convs at half "
+                        "the working size and upsample the logits back: a twice-finer "
+                        "--input-size for about the same cost, or the same one for about "
+                        "half (default 1)")
     p.add_argument("--input-size", type=int, nargs=2, metavar=("W", "H"), default=None,
                    help="working resolution (default 160 120)")
     p.add_argument("--max-minutes", type=float, default=None, help="training time budget")
