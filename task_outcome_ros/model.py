@@ -236,7 +236,8 @@ class OutcomeFCN(nn.Module):
     a working size twice as fine in each direction for about the network cost of the coarser
     one, since every conv runs on the coarser grid. The fine input keeps sub-pixel detail (a
     shelf overhang of 10 mm is under one pixel at 160 x 120 and 2 m) that an area resize
-    averages away.
+    averages away. Neither use (finer input, or a cheaper network at the same input) has beaten
+    the plain network in an hour of training (docs/experiments.md); no shipped model uses it.
     """
 
     def __init__(self, in_channels: int = IN_CHANNELS,
