@@ -4,7 +4,6 @@ on a freshly generated dataset, and a proof of life of the shipped checkpoint.""
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import subprocess
 import sys

@@ -136,7 +136,7 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch-size", type=positive_int, default=None)
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--base-width", type=positive_int, default=None, help="FCN width")
-    p.add_argument("--space-to-depth", type=int, choices=(1, 2), default=None,
+    p.add_argument("--space-to-depth", type=positive_int, default=None,
                    help="2: fold 2 x 2 input pixels into channels, run the convs at half "
                         "the working size and upsample the logits back: a twice-finer "
                         "--input-size for about the same cost, or the same one for about "
