@@ -61,7 +61,9 @@ DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution
 SPACE_TO_DEPTH_FACTORS = (1, 2)  # OutcomeFCN's input folding (1 = none)
 DEFAULT_MODEL_ARGS: dict[str, Any] = {
     "in_channels": IN_CHANNELS, "num_classes": DEFAULT_TABLE.num_classes, "base_width": 8,
-    "levels": 5, "decoder_convs": 1, "max_width": 128, "space_to_depth": 1}
+    "levels": 5, "decoder_convs": 1, "max_width": 128, "space_to_depth": 1,
+    "full_size_head": 0}
+FULL_SIZE_HEAD_MAX = 32  # channels of OutcomeFCN's optional full-size head
 
 
 def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
@@ -238,12 +240,22 @@ class OutcomeFCN(nn.Module):
     shelf overhang of 10 mm is under one pixel at 160 x 120 and 2 m) that an area resize
     averages away. Neither use (finer input, or a cheaper network at the same input) has beaten
     the plain network in an hour of training (docs/experiments.md); no shipped model uses it.
+
+    ``full_size_head`` = k > 0 (with ``space_to_depth`` > 1) gives the folded network a thin
+    head at the input size: one 3x3 conv of k channels on the unfolded input, concatenated with
+    the decoder's last features upsampled by a 2x2 transposed conv to k channels, and a 1x1
+    conv of k channels before the 1x1 logits. The encoder and decoder run on the coarse grid;
+    only this head sees each input pixel's neighbours at full size, so outcome boundaries are
+    drawn from full-size evidence rather than interpolated. On the default task it matched the
+    plain network on validation but split more objects between two outcomes on the
+    independent set (docs/experiments.md); no shipped model uses it.
     """
 
     def __init__(self, in_channels: int = IN_CHANNELS,
                  num_classes: int = DEFAULT_TABLE.num_classes, base_width: int = 8,
                  levels: int = 4, decoder_convs: int = 1,
-                 max_width: int | None = None, space_to_depth: int = 1) -> None:
+                 max_width: int | None = None, space_to_depth: int = 1,
+                 full_size_head: int = 0) -> None:
         super().__init__()
         if not (1 <= levels <= 6 and 2 <= base_width <= 256 and 1 <= decoder_convs <= 2
                 and (max_width is None or max_width >= base_width)
@@ -253,6 +265,11 @@ class OutcomeFCN(nn.Module):
                              f"{SPACE_TO_DEPTH_FACTORS}, got levels={levels} "
                              f"base_width={base_width} decoder_convs={decoder_convs} "
                              f"max_width={max_width} space_to_depth={space_to_depth!r}")
+        if not (isinstance(full_size_head, int) and 0 <= full_size_head <= FULL_SIZE_HEAD_MAX
+                and (full_size_head == 0 or space_to_depth > 1)):
+            raise ValueError(f"full_size_head must be an int in [0, {FULL_SIZE_HEAD_MAX}], and "
+                             f"0 without space_to_depth (nothing to refine), got "
+                             f"{full_size_head!r} with space_to_depth={space_to_depth}")
         self.levels = levels
         self.space_to_depth = space_to_depth
         cap = max_width or base_width * 2 ** levels
@@ -263,7 +280,17 @@ class OutcomeFCN(nn.Module):
             nn.ConvTranspose2d(widths[i + 1], widths[i], 2, stride=2) for i in range(levels))
         self.fuse = nn.ModuleList(_conv_block(2 * widths[i], widths[i], decoder_convs)
                                   for i in range(levels))
-        self.head = nn.Conv2d(widths[0], num_classes, 1)
+        self.full_size_head = full_size_head
+        if full_size_head:
+            k = full_size_head
+            self.fine_stem = _conv_block(in_channels, k, 1)
+            self.fine_up = nn.ConvTranspose2d(widths[0], k, space_to_depth,
+                                              stride=space_to_depth)
+            # 1x1: a 3x3 fuse cost 0.6 ms more at 160 x 120 (ONNX, 1 thread); the stem's 3x3
+            # already gives each full-size pixel its neighbours.
+            self.fine_fuse = nn.Sequential(nn.Conv2d(2 * k, k, 1, bias=False),
+                                           nn.BatchNorm2d(k), nn.ReLU(inplace=True))
+        self.head = nn.Conv2d(full_size_head or widths[0], num_classes, 1)
 
     @property
     def stride(self) -> int:
@@ -275,6 +302,7 @@ class OutcomeFCN(nn.Module):
         pad_h, pad_w = (s - h % s) % s, (s - w % s) % s
         if pad_h or pad_w:
             x = F.pad(x, (0, pad_w, 0, pad_h))
+        full = x
         if self.space_to_depth > 1:
             x = F.pixel_unshuffle(x, self.space_to_depth)
         skips = [self.stem(x)]
@@ -283,6 +311,9 @@ class OutcomeFCN(nn.Module):
         y = skips.pop()
         for i in reversed(range(self.levels)):
             y = self.fuse[i](torch.cat([self.up[i](y), skips[i]], dim=1))
+        if self.full_size_head:
+            y = self.fine_fuse(torch.cat([self.fine_up(y), self.fine_stem(full)], dim=1))
+            return self.head(y)[..., :h, :w]
         logits = self.head(y)
         if self.space_to_depth > 1:
             logits = F.interpolate(logits, scale_factor=float(self.space_to_depth),

@@ -97,6 +97,15 @@ def test_all_invalid_depth_means_nothing_present(segmenter: OutcomeSegmenter, fi
     assert all(objs == [] for objs in result.objects.values())
 
 
+def test_pixels_without_depth_are_background(segmenter: OutcomeSegmenter) -> None:
+    depth = _scene(480, 640, 5)  # 5 % of the pixels NaN
+    depth[100:200, 300:400] = 0.0  # and a block without returns (0 = none)
+    labels = segmenter.segment(depth).labels
+    invalid = ~(np.isfinite(depth) & (depth > 0))
+    assert invalid.sum() > 10_000 and not labels[invalid].any()
+    assert labels[~invalid].any()
+
+
 @pytest.mark.parametrize("bad", [np.zeros((4, 4, 1), np.float32), np.zeros(16, np.float32),
                                  np.zeros((4, 4), bool), np.array([["a", "b"]]),
                                  np.zeros((0, 5), np.float32), np.float32(2.0)])
@@ -251,14 +260,16 @@ def test_onnx_and_torch_backends_agree(onnx_ckpt: Path) -> None:
     assert agree / total >= 0.999
 
 
-def test_a_space_to_depth_network_exports_and_agrees(tmp_path: Path) -> None:
-    """Pixel unshuffle and the bilinear logit upsampling survive the ONNX export: both
-    backends label a frame alike at a working size twice as fine (320 x 240)."""
+@pytest.mark.parametrize("full_size_head", [0, 8])
+def test_a_space_to_depth_network_exports_and_agrees(tmp_path: Path,
+                                                      full_size_head: int) -> None:
+    """Pixel unshuffle, the bilinear logit upsampling and the full-size head survive the
+    ONNX export: both backends label a frame alike at 320 x 240."""
     pytest.importorskip("onnxruntime")
     from task_outcome_ros.onnx_export import export_onnx
 
     path = _make_checkpoint(tmp_path / "outcome_fcn.pt", seed=3, input_size=(320, 240),
-                            space_to_depth=2)
+                            space_to_depth=2, full_size_head=full_size_head)
     export_onnx(path)
     seg_onnx = OutcomeSegmenter(path, backend="onnx")
     seg_torch = OutcomeSegmenter(path, backend="torch")

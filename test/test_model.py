@@ -57,13 +57,43 @@ def test_space_to_depth_sees_sub_pixel_detail() -> None:
             assert not torch.allclose(outs[i], outs[j])
 
 
+@pytest.mark.parametrize("h,w", [(48, 64), (33, 97)])
+def test_full_size_head_keeps_size_and_works_at_full_size(h: int, w: int) -> None:
+    """With the coarse path cut (its upsampling zeroed), one input pixel moves exactly its
+    full-size 3 x 3 neighbourhood: the head runs on the unfolded grid, not the coarse one.
+    With the path in place, the same pixel also moves logits far outside that neighbourhood."""
+    torch.manual_seed(0)
+    model = OutcomeFCN(base_width=4, levels=2, space_to_depth=2, full_size_head=4).eval()
+    assert model.stride == 8
+    x = torch.zeros(1, IN_CHANNELS, h, w)
+    xi = x.clone()
+    xi[0, 0, 11, 11] = 1.0  # odd coordinates: the last pixel of its 2 x 2 block
+
+    def moved() -> torch.Tensor:
+        with torch.inference_mode():
+            return (model(xi) - model(x)).abs().sum(1)[0] > 1e-6
+
+    with_context = moved()
+    with torch.no_grad():
+        model.fine_up.weight.zero_()
+        model.fine_up.bias.zero_()
+    local = moved()
+    neighbourhood = torch.zeros_like(local)
+    neighbourhood[10:13, 10:13] = True
+    assert torch.equal(local, neighbourhood)
+    assert (with_context & ~neighbourhood).sum() > 20
+    assert model(x).shape == (1, DEFAULT_TABLE.num_classes, h, w)
+
+
 def test_build_model_from_default_args() -> None:
     model = build_model(DEFAULT_MODEL_ARGS)
     assert model.stride == 2 ** DEFAULT_MODEL_ARGS["levels"]
 
 
 @pytest.mark.parametrize("kwargs", [{"levels": 0}, {"base_width": 1}, {"decoder_convs": 3},
-                                    {"space_to_depth": 3}])
+                                    {"space_to_depth": 3}, {"full_size_head": 4},
+                                    {"space_to_depth": 2, "full_size_head": 33},
+                                    {"space_to_depth": 2, "full_size_head": -1}])
 def test_bad_constructor_args(kwargs: dict) -> None:
     with pytest.raises(ValueError):
         OutcomeFCN(**kwargs)
@@ -123,14 +153,15 @@ def _box_scenes(n: int, h: int, w: int, rng: np.random.Generator):
     return depths, labels
 
 
-@pytest.mark.parametrize("space_to_depth", [1, 2])
-def test_model_overfits_tiny_batch(space_to_depth: int) -> None:
+@pytest.mark.parametrize("space_to_depth,full_size_head", [(1, 0), (2, 0), (2, 8)])
+def test_model_overfits_tiny_batch(space_to_depth: int, full_size_head: int) -> None:
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     depths, labels = _box_scenes(4, 48, 64, rng)
     x = preprocess_batch(torch.from_numpy(depths), (64, 48))
     y = torch.from_numpy(labels)
-    model = OutcomeFCN(base_width=8, levels=3, space_to_depth=space_to_depth)
+    model = OutcomeFCN(base_width=8, levels=3, space_to_depth=space_to_depth,
+                       full_size_head=full_size_head)
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
     losses = []
     for _ in range(150):

@@ -77,6 +77,12 @@ def test_train_config_validation_names_the_field():
         TrainConfig(max_width=4).validate()
     with pytest.raises(ConfigError, match="train.near_boundary_weight"):
         TrainConfig(near_boundary_weight=0.5).validate()
+    with pytest.raises(ConfigError, match="train.full_size_head = 8 needs space_to_depth 2"):
+        TrainConfig(full_size_head=8).validate()
+    with pytest.raises(ConfigError, match="train.full_size_head"):
+        TrainConfig(space_to_depth=2, full_size_head=33).validate()
+    assert TrainConfig(space_to_depth=2, full_size_head=8).validate().model_args[
+        "full_size_head"] == 8
 
 
 def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():
@@ -259,11 +265,13 @@ def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
     renamed = {("near_rim_weight" if k == "near_boundary_weight" else k): v
                for k, v in saved.items()}
     assert resume_differences(renamed, cfg, "bf16", "bf16") == []
-    # Saved before space_to_depth existed: every such run had none (1), the same setting.
-    unfolded = {k: v for k, v in saved.items() if k != "space_to_depth"}
+    # Saved before space_to_depth and full_size_head existed: every such run had neither
+    # (1 and 0), the same setting.
+    unfolded = {k: v for k, v in saved.items() if k not in ("space_to_depth", "full_size_head")}
     assert resume_differences(unfolded, cfg, "bf16", "bf16") == []
-    assert resume_differences(unfolded, dataclasses.replace(cfg, space_to_depth=2), "bf16",
-                              "bf16") == ["space_to_depth: 1 -> 2"]
+    headed = dataclasses.replace(cfg, space_to_depth=2, full_size_head=8)
+    assert resume_differences(unfolded, headed, "bf16", "bf16") == [
+        "full_size_head: 0 -> 8", "space_to_depth: 1 -> 2"]
     assert resume_differences(saved, cfg, "bf16", "fp32") == ["precision: bf16 -> fp32"]
     old = {k: v for k, v in saved.items() if k != "lovasz_weight"}     # predates the field
     assert resume_differences(old, cfg, "bf16", "bf16") == [

@@ -141,6 +141,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                         "the working size and upsample the logits back: a twice-finer "
                         "--input-size for about the same cost, or the same one for about "
                         "half (default 1)")
+    p.add_argument("--full-size-head", type=int, default=None, metavar="CHANNELS",
+                   help="with --space-to-depth 2: a thin head of this many channels at the "
+                        "working size, fed the unfolded input, draws the outcome boundaries "
+                        "(0 = none, the logits are upsampled; default 0)")
     p.add_argument("--input-size", type=int, nargs=2, metavar=("W", "H"), default=None,
                    help="working resolution (default 160 120)")
     p.add_argument("--max-minutes", type=float, default=None, help="training time budget")
@@ -180,7 +184,8 @@ def resolve_train_config(args: argparse.Namespace):
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
               "channels_last": "channels_last", "near_boundary_weight": "near_boundary_weight",
               "aug_noise": "aug_noise", "lovasz_weight": "lovasz_weight",
-              "camera_intrinsics": "camera_intrinsics", "space_to_depth": "space_to_depth"}
+              "camera_intrinsics": "camera_intrinsics", "space_to_depth": "space_to_depth",
+              "full_size_head": "full_size_head"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
     if args.input_size is not None:
         overrides["input_size"] = tuple(args.input_size)

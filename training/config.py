@@ -656,6 +656,9 @@ class TrainConfig:
     # 2: the input folded 2 x 2 into channels, convs on the half-size grid, logits upsampled
     # back (model.OutcomeFCN); a working size twice as fine for about the same network cost.
     space_to_depth: int = 1
+    # Channels of a thin head at the working size for a folded network (model.OutcomeFCN):
+    # boundaries from full-size evidence instead of upsampled logits; 0 = none.
+    full_size_head: int = 0
     # Tote model 0.6.0: 13 epochs of 19,000 images, 47 min on 2 cores in bf16 (0.37 s a step
     # in the loop). In fp32 a step takes about 1.05 s, and the schedule is fitted to
     # max_minutes after the first epoch (train.fitted_epochs): about 5 epochs of 19,000
@@ -712,6 +715,10 @@ class TrainConfig:
         _check_int(o, "decoder_convs", self.decoder_convs, 1, 2)
         _check_int(o, "max_width", self.max_width, self.base_width, 4096)
         _check_int(o, "space_to_depth", self.space_to_depth, 1, 2)
+        _check_int(o, "full_size_head", self.full_size_head, 0, 32)
+        if self.full_size_head and self.space_to_depth == 1:
+            raise ConfigError(f"{o}.full_size_head = {self.full_size_head} needs "
+                              "space_to_depth 2: an unfolded network already works at full size")
         _check_int(o, "epochs", self.epochs, 1, 10_000)
         _check_int(o, "batch_size", self.batch_size, 1, 4096)
         _check_range(o, "lr", self.lr, 1e-6, 1.0)
@@ -741,4 +748,4 @@ class TrainConfig:
         return {"in_channels": IN_CHANNELS, "num_classes": DEFAULT_TABLE.num_classes,
                 "base_width": self.base_width, "levels": self.levels,
                 "decoder_convs": self.decoder_convs, "max_width": self.max_width,
-                "space_to_depth": self.space_to_depth}
+                "space_to_depth": self.space_to_depth, "full_size_head": self.full_size_head}
