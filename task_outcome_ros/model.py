@@ -61,8 +61,7 @@ DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution
 SPACE_TO_DEPTH_FACTORS = (1, 2)  # OutcomeFCN's input folding (1 = none)
 DEFAULT_MODEL_ARGS: dict[str, Any] = {
     "in_channels": IN_CHANNELS, "num_classes": DEFAULT_TABLE.num_classes, "base_width": 8,
-    "levels": 5, "decoder_convs": 1, "max_width": 128, "space_to_depth": 1,
-    "full_size_head": 0}
+    "levels": 5, "decoder_convs": 1, "max_width": 128}  # no fold, no full-size head
 FULL_SIZE_HEAD_MAX = 32  # channels of OutcomeFCN's optional full-size head
 
 
@@ -265,7 +264,8 @@ class OutcomeFCN(nn.Module):
                              f"{SPACE_TO_DEPTH_FACTORS}, got levels={levels} "
                              f"base_width={base_width} decoder_convs={decoder_convs} "
                              f"max_width={max_width} space_to_depth={space_to_depth!r}")
-        if not (isinstance(full_size_head, int) and 0 <= full_size_head <= FULL_SIZE_HEAD_MAX
+        if not (isinstance(full_size_head, int) and not isinstance(full_size_head, bool)
+                and 0 <= full_size_head <= FULL_SIZE_HEAD_MAX
                 and (full_size_head == 0 or space_to_depth > 1)):
             raise ValueError(f"full_size_head must be an int in [0, {FULL_SIZE_HEAD_MAX}], and "
                              f"0 without space_to_depth (nothing to refine), got "

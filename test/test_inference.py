@@ -98,12 +98,17 @@ def test_all_invalid_depth_means_nothing_present(segmenter: OutcomeSegmenter, fi
 
 
 def test_pixels_without_depth_are_background(segmenter: OutcomeSegmenter) -> None:
+    """Whatever the network says there, a pixel without depth comes out background: here
+    every working-size pixel is an outcome, and exactly the invalid ones must turn 0."""
     depth = _scene(480, 640, 5)  # 5 % of the pixels NaN
-    depth[100:200, 300:400] = 0.0  # and a block without returns (0 = none)
-    labels = segmenter.segment(depth).labels
-    invalid = ~(np.isfinite(depth) & (depth > 0))
-    assert invalid.sum() > 10_000 and not labels[invalid].any()
-    assert labels[~invalid].any()
+    depth[100:200, 300:400] = np.nan  # and a block without returns
+    w, h = segmenter.input_size
+    small = np.full((h, w), DEFAULT_TABLE.outcome_ids["success"], np.uint8)
+    small[: h // 2] = DEFAULT_TABLE.outcome_ids["fell_outside"]
+    for valid in (None, np.isfinite(depth)):
+        labels = segmenter.postprocess(small, depth, valid).labels
+        assert np.array_equal(labels == 0, np.isnan(depth))
+    assert small.min() > 0  # the caller's working-size labels are left alone
 
 
 @pytest.mark.parametrize("bad", [np.zeros((4, 4, 1), np.float32), np.zeros(16, np.float32),

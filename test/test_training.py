@@ -83,6 +83,8 @@ def test_train_config_validation_names_the_field():
         TrainConfig(space_to_depth=2, full_size_head=33).validate()
     assert TrainConfig(space_to_depth=2, full_size_head=8).validate().model_args[
         "full_size_head"] == 8
+    # Unused, later options stay out of model_args: older runtimes can build the network.
+    assert not {"space_to_depth", "full_size_head"} & set(TrainConfig().model_args)
 
 
 def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():

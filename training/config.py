@@ -715,6 +715,7 @@ class TrainConfig:
         _check_int(o, "decoder_convs", self.decoder_convs, 1, 2)
         _check_int(o, "max_width", self.max_width, self.base_width, 4096)
         _check_int(o, "space_to_depth", self.space_to_depth, 1, 2)
+        # 32 = model.FULL_SIZE_HEAD_MAX, repeated: validating a config does not import torch.
         _check_int(o, "full_size_head", self.full_size_head, 0, 32)
         if self.full_size_head and self.space_to_depth == 1:
             raise ConfigError(f"{o}.full_size_head = {self.full_size_head} needs "
@@ -745,7 +746,12 @@ class TrainConfig:
         from task_outcome_ros.model import IN_CHANNELS
 
         # The default task's class count; train.py sets the dataset's own table's.
-        return {"in_channels": IN_CHANNELS, "num_classes": DEFAULT_TABLE.num_classes,
+        args = {"in_channels": IN_CHANNELS, "num_classes": DEFAULT_TABLE.num_classes,
                 "base_width": self.base_width, "levels": self.levels,
-                "decoder_convs": self.decoder_convs, "max_width": self.max_width,
-                "space_to_depth": self.space_to_depth, "full_size_head": self.full_size_head}
+                "decoder_convs": self.decoder_convs, "max_width": self.max_width}
+        # Options added later are recorded only when used, so that an unfolded network's
+        # checkpoint still builds on a runtime older than them (model 0.7.0's).
+        for name, unused in (("space_to_depth", 1), ("full_size_head", 0)):
+            if getattr(self, name) != unused:
+                args[name] = getattr(self, name)
+        return args
