@@ -750,7 +750,7 @@ class TrainConfig:
                 "base_width": self.base_width, "levels": self.levels,
                 "decoder_convs": self.decoder_convs, "max_width": self.max_width}
         # Options added later are recorded only when used, so that an unfolded network's
-        # checkpoint still builds on a runtime older than them (model 0.7.0's).
+        # checkpoint still builds on a runtime older than them (package 0.7.0).
         for name, unused in (("space_to_depth", 1), ("full_size_head", 0)):
             if getattr(self, name) != unused:
                 args[name] = getattr(self, name)
