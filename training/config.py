@@ -643,6 +643,12 @@ def load_json(path: Path) -> Any:
     return json.loads(path.read_text())
 
 
+# Network options added after the first models, with the value that means "not used" (what
+# every run before them had): left out of model_args when unused, and not a difference when a
+# run saved before them resumes (train.ADDED_TRAIN_FIELDS).
+LATER_NETWORK_OPTIONS = {"space_to_depth": 1, "full_size_head": 0}
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Training of the outcome FCN (training/train.py). Defaults train the shipped model."""
@@ -751,7 +757,7 @@ class TrainConfig:
                 "decoder_convs": self.decoder_convs, "max_width": self.max_width}
         # Options added later are recorded only when used, so that an unfolded network's
         # checkpoint still builds on a runtime older than them (package 0.7.0).
-        for name, unused in (("space_to_depth", 1), ("full_size_head", 0)):
+        for name, unused in LATER_NETWORK_OPTIONS.items():
             if getattr(self, name) != unused:
                 args[name] = getattr(self, name)
         return args

@@ -49,6 +49,7 @@ from task_outcome_ros.model import (
     network_input,
 )
 from training.config import (
+    LATER_NETWORK_OPTIONS,
     CameraConfig,
     DatasetConfig,
     NoiseConfig,
@@ -360,7 +361,7 @@ RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
 # Training fields saved under an older name: the same setting (a resume is not refused).
 RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
-ADDED_TRAIN_FIELDS = {"space_to_depth": 1, "full_size_head": 0}
+ADDED_TRAIN_FIELDS = dict(LATER_NETWORK_OPTIONS)
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
