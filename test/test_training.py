@@ -448,15 +448,18 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
     for factor, values in sweeps.items():
         entry = saved["factors"][factor]
         assert entry["values"] == list(values)
-        for value, got in zip(values, entry["image_all_correct"]):
+        for k, (value, got) in enumerate(zip(values, entry["image_all_correct"])):
             # The success-everywhere model is right exactly where only success is true.
             truths = [outcomes_present(stressed_frame(episodes[i], outcomes[i], cfg, cfg.seed,
                                                       Stress(**{factor: value}), table)[1],
                                        table=table)
                       for i in val]
-            only = sum(t == {name: name == "success" for name in table.outcome_names}
-                       for t in truths)
-            assert got == pytest.approx(only / len(val)), (factor, value)
+            only_success = {name: name == "success" for name in table.outcome_names}
+            wrong = [i for i, t in zip(val, truths) if t != only_success]
+            assert got == pytest.approx(1 - len(wrong) / len(val)), (factor, value)
+            assert entry["mistakes"][k] == wrong, (factor, value)
+            low, high = entry["ci95"][k]
+            assert 0.0 <= low <= got <= high <= 1.0 and high - low > 0.3  # 2 images: wide
     assert (tmp_path / "rob" / "robustness.png").stat().st_size > 5000
 
 

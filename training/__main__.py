@@ -18,6 +18,7 @@ from pathlib import Path
 from task_outcome_ros.cli_args import non_negative_int, positive_int
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from training.config import (
+    ROBUSTNESS_IMAGES,
     ConfigError,
     DatasetConfig,
     dataset_config_from_dict,
@@ -232,7 +233,9 @@ def cmd_evaluate(args) -> None:
                       camera_info=args.camera_info)
     print(f"evaluate: {report['n_images']} images of {data} ({args.split}, heights from the "
           f"{report['heights_from']}): image all-correct "
-          f"{report['image_all_correct']:.4f}, pixel mIoU {report['pixel_miou']:.4f}, "
+          f"{report['image_all_correct']:.4f} (95 % interval "
+          f"{report['image_all_correct_ci95'][0]:.3f}-{report['image_all_correct_ci95'][1]:.3f}), "
+          f"pixel mIoU {report['pixel_miou']:.4f}, "
           f"presence recall {report['presence_recall']} -> {out}/eval.json")
     hard = report.get("hard_cases")
     if hard:
@@ -253,8 +256,8 @@ def add_robustness_args(p: argparse.ArgumentParser) -> None:
                         "train/best.pt, else the shipped model of the data's task)")
     p.add_argument("--data", type=Path, default=None,
                    help="dataset run whose validation episodes are re-rendered (default: --out)")
-    p.add_argument("--images", type=positive_int, default=100,
-                   help="validation episodes per stress point (default 100)")
+    p.add_argument("--images", type=positive_int, default=ROBUSTNESS_IMAGES,
+                   help=f"validation episodes per stress point (default {ROBUSTNESS_IMAGES})")
     p.add_argument("--eval-out", type=Path, default=None,
                    help="where robustness.json goes (default: <data>/robustness)")
 
@@ -325,6 +328,17 @@ def cmd_independent(args) -> None:
           f"python -m training evaluate --data {args.out} --checkpoint MODEL")
 
 
+def add_compare_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("a", type=Path, help="eval.json or robustness.json (or its folder) of model A")
+    p.add_argument("b", type=Path, help="the same kind of result for model B, on the same images")
+
+
+def cmd_compare(args) -> None:
+    from training.compare import run_compare
+
+    run_compare(args.a, args.b)
+
+
 def cmd_demo(args) -> int:
     from training.demo import demo_main
 
@@ -350,6 +364,7 @@ COMMANDS = {
     "robustness": (cmd_robustness, "score a model on stress sets, one factor at a time"),
     "independent": (cmd_independent, "an evaluation set made by pybullet ray tests and a "
                                      "separately written noise model"),
+    "compare": (cmd_compare, "two models' results on the same images, paired (McNemar)"),
     "demo": (cmd_demo, "a small simulated bag through the live outcome_node, scored"),
 }
 
@@ -375,6 +390,9 @@ def build_parser() -> argparse.ArgumentParser:
             continue
         if name == "independent":
             add_independent_args(p)
+            continue
+        if name == "compare":
+            add_compare_args(p)
             continue
         add_dataset_args(p)
         if name in ("train", "run"):

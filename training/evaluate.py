@@ -36,6 +36,7 @@ from training.hard_cases import (
     gap_bin_names,
 )
 from training.render import read_pair, reported_camera
+from training.stats import wilson_interval
 
 
 def confusion(truth: np.ndarray, pred: np.ndarray, num_classes: int) -> np.ndarray:
@@ -134,6 +135,8 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         "model": str(seg.model_path),
         "backend": seg.backend,
         **presence_scores(truth_arr, pred_arr, table.outcome_names),
+        "image_all_correct_ci95": [round(v, 4) for v in wilson_interval(
+            sum(r["correct"] for r in rows), len(rows))],
         "label_table": table.to_dict(),
         "pixel_miou": float(iou.mean()),
         "iou": {name: round(float(iou[c]), 5) for c, name in enumerate(table.classes)},

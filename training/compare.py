@@ -1,0 +1,97 @@
+"""``python -m training compare A B``: two models on the same images, paired.
+
+A and B are two ``evaluate`` results (eval.json, or the folder holding it) on the same data
+and split, or two ``robustness`` results (robustness.json, or its folder) on the same data
+and scenes. For each set of images it prints both all-correct rates with their 95 %
+intervals, the images only one model got wrong, and the exact McNemar p-value
+(training/stats.py). Results written before the suite recorded its mistakes per point can
+still be compared by rate, without the paired test.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from training.config import load_json
+from training.stats import paired_comparison, wilson_interval
+
+RESULT_FILES = ("eval.json", "robustness.json")
+
+
+def load_result(path: Path) -> tuple[str, dict]:
+    """("eval" | "robustness", report) from a result file or the folder that holds one."""
+    path = Path(path)
+    if path.is_dir():
+        found = [path / name for name in RESULT_FILES if (path / name).is_file()]
+        if len(found) != 1:
+            raise FileNotFoundError(f"{path}: expected one of {', '.join(RESULT_FILES)}, "
+                                    f"found {len(found)}")
+        path = found[0]
+    report = load_json(path)
+    if "factors" in report:
+        return "robustness", report
+    if "image_all_correct" in report and "mistakes" in report:
+        return "eval", report
+    raise ValueError(f"{path}: neither an evaluate nor a robustness result")
+
+
+def _same(a: dict, b: dict, keys: tuple[str, ...], what: str) -> None:
+    for key in keys:
+        if a.get(key) != b.get(key):
+            raise ValueError(f"not the same images: {what} {key} {a.get(key)!r} vs "
+                             f"{b.get(key)!r}; compare results made on the same data")
+
+
+def compare_reports(kind_a: str, a: dict, kind_b: str, b: dict) -> list[dict]:
+    """One row per set of images both results scored: its name and the paired comparison
+    (or, without recorded mistakes, the two rates and intervals only)."""
+    if kind_a != kind_b:
+        raise ValueError(f"cannot compare an {kind_a} result with a {kind_b} result")
+    if kind_a == "eval":
+        _same(a, b, ("data", "split", "n_images"), "evaluation")
+        row = paired_comparison(a["mistakes"], b["mistakes"], a["n_images"])
+        return [{"set": f"{a['split']} of {a['data']}", **row}]
+    _same(a, b, ("data", "images"), "robustness")
+    rows = []
+    for factor, entry_a in a["factors"].items():
+        entry_b = b["factors"].get(factor)
+        if entry_b is None:
+            continue
+        for k, value in enumerate(entry_a["values"]):
+            if value not in entry_b["values"]:
+                continue
+            j = entry_b["values"].index(value)
+            name = f"{factor} {value if value != '' else 'as trained'}"
+            n = a["images"]
+            if "mistakes" in entry_a and "mistakes" in entry_b:
+                rows.append({"set": name, **paired_comparison(entry_a["mistakes"][k],
+                                                              entry_b["mistakes"][j], n)})
+                continue
+            rates = (entry_a["image_all_correct"][k], entry_b["image_all_correct"][j])
+            rows.append({"set": name, "images": n, "p_value": None, **{
+                side: {"all_correct": r, "ci95": wilson_interval(round(r * n), n)}
+                for side, r in zip("ab", rates)}})
+    if not rows:
+        raise ValueError("the two robustness results share no stress point")
+    return rows
+
+
+def format_row(row: dict) -> str:
+    def rate(side: dict) -> str:
+        lo, hi = side["ci95"]
+        return f"{side['all_correct']:.3f} [{lo:.3f}, {hi:.3f}]"
+
+    text = f"{row['set']}: A {rate(row['a'])}, B {rate(row['b'])} ({row['images']} images)"
+    if row["p_value"] is None:
+        return text + "; mistakes not recorded per image, no paired test"
+    return (text + f"; only A wrong {len(row['only_a_wrong'])}, only B wrong "
+            f"{len(row['only_b_wrong'])}, both {row['both_wrong']}; McNemar p = "
+            f"{row['p_value']:.3g}")
+
+
+def run_compare(path_a: Path, path_b: Path) -> list[dict]:
+    rows = compare_reports(*load_result(path_a), *load_result(path_b))
+    print(f"A = {path_a}\nB = {path_b}")
+    for row in rows:
+        print(format_row(row))
+    return rows
