@@ -193,6 +193,11 @@ def plot_robustness(path: Path, report: dict) -> None:
                              squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
+    # One y range for all panels, from just under the lowest rate (or interval) to 1: the
+    # rates live near the top, and 0-1 would flatten the intervals into the markers.
+    lows = [v for e in factors.values() for v in
+            (np.array(e["ci95"])[:, 0] if "ci95" in e else e["image_all_correct"])]
+    bottom = max(0.0, math.floor(min(lows) * 20) / 20 - 0.05)
     for ax, (factor, entry) in zip(axes.ravel(), factors.items()):
         ax.axis("on")
         labels = [str(v) if v != "" else "as trained" for v in entry["values"]]
@@ -204,7 +209,7 @@ def plot_robustness(path: Path, report: dict) -> None:
         else:
             ax.plot(range(len(labels)), rates, "o-")
         ax.set_xticks(range(len(labels)), labels)
-        ax.set_ylim(0.0, 1.02)
+        ax.set_ylim(bottom, 1.005)
         ax.axhline(entry["image_all_correct"][0], color="grey", lw=0.8, ls="--")
         ax.set_title(factor, fontsize=9)
         ax.set_ylabel("image all-correct")
