@@ -69,13 +69,23 @@ def test_compare_pairs_evaluations_and_robustness_points_on_the_same_images():
     assert len(rows) == 1 and rows[0]["only_a_wrong"] == [1, 3] and rows[0]["both_wrong"] == 1
     rows = compare_reports("robustness", _robustness([[], [4, 5, 6]]),
                            "robustness", _robustness([[4], [4]]))
-    assert [r["set"] for r in rows] == ["support_tilt_deg 0.0", "support_tilt_deg 3.0"]
+    assert [r["set"] for r in rows] == ["as trained", "support_tilt_deg 3.0"]
     assert rows[0]["only_b_wrong"] == [4] and rows[1]["only_a_wrong"] == [5, 6]
     # Results from before the suite kept its mistakes: rates and intervals, no paired test.
     old = compare_reports("robustness", _robustness(None), "robustness", _robustness([[], []]))
     assert all(r["p_value"] is None for r in old)
     assert old[1]["a"]["all_correct"] == 0.98
     assert old[1]["a"]["ci95"] == pytest.approx(wilson_interval(98, 100))
+
+
+def test_compare_reports_the_training_condition_once():
+    """Every factor's first value is the training condition, the same scenes each time."""
+    two = _robustness([[], [1]])
+    two["factors"]["camera_roll_deg"] = {"values": [0.0, 10.0], "image_all_correct": [1.0, 0.97],
+                                         "mistakes": [[], [7, 8, 9]]}
+    rows = compare_reports("robustness", two, "robustness", two)
+    assert [r["set"] for r in rows] == ["as trained", "support_tilt_deg 3.0",
+                                        "camera_roll_deg 10.0"]
 
 
 def test_compare_refuses_different_images_or_kinds():

@@ -52,7 +52,7 @@ def compare_reports(kind_a: str, a: dict, kind_b: str, b: dict) -> list[dict]:
         row = paired_comparison(a["mistakes"], b["mistakes"], a["n_images"])
         return [{"set": f"{a['split']} of {a['data']}", **row}]
     _same(a, b, ("data", "images"), "robustness")
-    rows = []
+    rows, seen_as_trained = [], False
     for factor, entry_a in a["factors"].items():
         entry_b = b["factors"].get(factor)
         if entry_b is None:
@@ -61,7 +61,14 @@ def compare_reports(kind_a: str, a: dict, kind_b: str, b: dict) -> list[dict]:
             if value not in entry_b["values"]:
                 continue
             j = entry_b["values"].index(value)
-            name = f"{factor} {value if value != '' else 'as trained'}"
+            # Each factor's first value is the training condition: the same scenes rendered
+            # the same way under every factor, so it is reported once.
+            if k == 0 and j == 0:
+                if seen_as_trained:
+                    continue
+                seen_as_trained, name = True, "as trained"
+            else:
+                name = f"{factor} {value}"
             n = a["images"]
             if "mistakes" in entry_a and "mistakes" in entry_b:
                 rows.append({"set": name, **paired_comparison(entry_a["mistakes"][k],
