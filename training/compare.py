@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from training.config import load_json
-from training.stats import paired_comparison, wilson_interval
+from training.stats import paired_comparison, rate_with_interval
 
 RESULT_FILES = ("eval.json", "robustness.json")
 
@@ -74,10 +74,11 @@ def compare_reports(kind_a: str, a: dict, kind_b: str, b: dict) -> list[dict]:
                 rows.append({"set": name, **paired_comparison(entry_a["mistakes"][k],
                                                               entry_b["mistakes"][j], n)})
                 continue
-            rates = (entry_a["image_all_correct"][k], entry_b["image_all_correct"][j])
-            rows.append({"set": name, "images": n, "p_value": None, **{
-                side: {"all_correct": r, "ci95": wilson_interval(round(r * n), n)}
-                for side, r in zip("ab", rates)}})
+            # The stored rate is rounded to 4 digits; the image count it stands for is not.
+            rights = (round(entry_a["image_all_correct"][k] * n),
+                      round(entry_b["image_all_correct"][j] * n))
+            rows.append({"set": name, "images": n, "p_value": None,
+                         **{side: rate_with_interval(r, n) for side, r in zip("ab", rights)}})
     if not rows:
         raise ValueError("the two robustness results share no stress point")
     return rows

@@ -47,6 +47,11 @@ def exact_mcnemar_p(only_a_wrong: int, only_b_wrong: int) -> float:
     return min(1.0, 2.0 * tail)
 
 
+def rate_with_interval(right: int, n: int) -> dict:
+    """{"all_correct": right / n, "ci95": its Wilson interval}: how every rate is reported."""
+    return {"all_correct": right / n, "ci95": wilson_interval(right, n)}
+
+
 def paired_comparison(mistakes_a: Iterable[int], mistakes_b: Iterable[int], n: int) -> dict:
     """Two models' mistakes (image ids) on the same ``n`` images -> who got which wrong, each
     rate with its interval, and the exact McNemar p-value of the difference."""
@@ -56,10 +61,8 @@ def paired_comparison(mistakes_a: Iterable[int], mistakes_b: Iterable[int], n: i
     only_a, only_b = sorted(a - b), sorted(b - a)
     return {
         "images": n,
-        "a": {"all_correct": (n - len(a)) / n, "ci95": wilson_interval(n - len(a), n),
-              "mistakes": len(a)},
-        "b": {"all_correct": (n - len(b)) / n, "ci95": wilson_interval(n - len(b), n),
-              "mistakes": len(b)},
+        "a": {**rate_with_interval(n - len(a), n), "mistakes": len(a)},
+        "b": {**rate_with_interval(n - len(b), n), "mistakes": len(b)},
         "both_wrong": len(a & b),
         "only_a_wrong": only_a,
         "only_b_wrong": only_b,
