@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 from task_outcome_ros.labels import DEFAULT_TABLE, FIXTURE
-from training.config import DiscoverConfig, SceneConfig
+from training.config import DiscoverConfig, SceneConfig, _from_dict
 from training.discover import features
 from training.fixture import Fixture, Table, draw_fixture, episode_fixture, fixture_from_record
 from training.geometry import geometric_outcome, object_measurements, object_sample_points
 from training.render import Camera, SceneBox, look_at, render, scene_boxes
+from training.scene import load_scene
 
 task_word = DiscoverConfig().outcome_name  # descriptor -> the default task's word
 
@@ -96,6 +97,34 @@ def test_fixture_records_round_trip_and_fixed_ranges_draw_nothing():
     assert (fixed.half_x, fixed.half_y, fixed.yaw, fixed.base_z) == (0.5, 0.5, 0.3, 0.01)
     legacy = episode_fixture({"container_yaw": 0.3, "floor_z": 0.01}, SceneConfig())
     assert legacy == fixed
+
+
+def test_a_fixed_table_size_pair_is_a_fixed_range():
+    pair = _from_dict(SceneConfig, {"table_size": [1.8, 1.4]})
+    ranges = _from_dict(SceneConfig, {"table_size": [[1.8, 1.8], [1.4, 1.4]]})
+    assert pair == ranges and pair.table_size == ((1.8, 1.8), (1.4, 1.4))
+
+
+def test_a_table_edge_margin_puts_the_fixture_anywhere_on_a_drawn_table():
+    scene = load_scene("tote").scene
+    margin = scene.table_edge_margin
+    rng = np.random.default_rng(3)
+    gaps, sizes = [], []
+    for _ in range(300):
+        fixture = draw_fixture(scene, float(rng.uniform(-math.pi, math.pi)), 0.0, rng)
+        table = fixture.table
+        # The table's centre in the fixture's frame: the table turns with the fixture.
+        centre = fixture.to_frame(np.array([table.x, table.y, fixture.base_z]))[:2]
+        outer = np.array([fixture.half_x, fixture.half_y]) + fixture.wall_thickness
+        gap = np.array([table.half_x, table.half_y]) - np.abs(centre) - outer
+        gaps.append(gap.min())
+        sizes.append((2 * table.half_x, 2 * table.half_y))
+    gaps, sizes = np.array(gaps), np.array(sizes)
+    assert gaps.min() >= margin - 1e-9          # always standing on the table
+    assert np.mean(gaps < margin + 0.05) > 0.15  # often near an edge ...
+    assert np.mean(gaps > 0.2) > 0.15            # ... often far from every edge
+    for axis, (lo, hi) in enumerate(scene.table_size):  # sizes cover the drawn ranges
+        assert lo <= sizes[:, axis].min() < lo + 0.1 and hi - 0.1 < sizes[:, axis].max() <= hi
 
 
 def _camera_over(fixture: Fixture, distance=1.0, elevation=70.0, azimuth=20.0, f=500.0):

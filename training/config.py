@@ -89,9 +89,15 @@ class SceneConfig:
     fixture_yaw_deg: tuple[float, float] = (-45.0, 45.0)     # a square repeats every 90 deg
     # The support plane's height (the room floor, or the table top), and an optional table.
     floor_height: tuple[float, float] = (-0.05, 0.05)        # m
-    table_size: tuple[float, float] | None = None            # m (x, y) of the table top
+    # The table top's size along the fixture's x and y, each a (min, max) range drawn per
+    # episode (a spec may give a fixed (x, y) pair). The table turns with the fixture.
+    table_size: tuple[tuple[float, float], tuple[float, float]] | None = None   # m
     table_height: tuple[float, float] = (0.75, 0.75)         # m, table top above the room floor
     table_offset: float = 0.0             # m, table centre uniform in +-this from the fixture
+    # Instead of table_offset: the fixture stands anywhere on the drawn table, its outer
+    # footprint at least this far inside the table's edges (m), as totes stand at a bench's
+    # edge as often as at its middle. None keeps table_offset.
+    table_edge_margin: float | None = None
     # The support's tilt from level (deg), towards a uniformly drawn direction: real floors
     # and tables are rarely level, and cameras are placed against the true vertical.
     support_tilt_deg: tuple[float, float] = (0.0, 0.0)
@@ -168,11 +174,17 @@ class SceneConfig:
         _check_interval(o, "floor_height", self.floor_height, -1.0, 1.0)
         if self.table_size is not None:
             if not isinstance(self.table_size, (tuple, list)) or len(self.table_size) != 2:
-                raise ConfigError(f"{o}.table_size must be (x, y), got {self.table_size!r}")
-            for k, side in enumerate(self.table_size):
-                _check_range(o, f"table_size[{k}]", side, 0.2, 10.0)
+                raise ConfigError(f"{o}.table_size must be (x, y) sizes or ((x_min, x_max), "
+                                  f"(y_min, y_max)) ranges, got {self.table_size!r}")
+            for axis, side in zip("xy", self.table_size):
+                _check_interval(o, f"table_size.{axis}", side, 0.2, 10.0)
         _check_interval(o, "table_height", self.table_height, 0.2, 2.0)
         _check_range(o, "table_offset", self.table_offset, 0.0, 5.0)
+        if self.table_edge_margin is not None:
+            _check_range(o, "table_edge_margin", self.table_edge_margin, 0.0, 2.0)
+            if self.table_offset:
+                raise ConfigError(f"{o}: table_edge_margin places the fixture anywhere on the "
+                                  f"table; leave table_offset at 0 (it is {self.table_offset})")
         _check_interval(o, "support_tilt_deg", self.support_tilt_deg, 0.0, 15.0)
         _check_int(o, "min_objects", self.min_objects, 1, 8)
         _check_int(o, "max_objects", self.max_objects, self.min_objects, 8)
@@ -230,24 +242,28 @@ class SceneConfig:
         if sum(w for _, w in self.shape_weights) <= 0:
             raise ConfigError(f"{o}.shape_weights: at least one shape needs a weight > 0")
 
+    def fixture_outer_half(self, axis: int) -> float:
+        """Half the largest outer footprint the spec draws along the fixture's x (0) or y (1)."""
+        if self.fixture == "board":
+            return (self.board_width, self.board_depth)[axis][1] / 2
+        return (self.inner_size_x, self.inner_size_y)[axis][1] / 2 + self.wall_thickness
+
     def _validate_table(self, o: str) -> None:
-        """The fixture must stand on the table wherever its size and the table's offset are
-        drawn. The table turns with the fixture, so this is per axis of the fixture; an
-        offset of up to ``table_offset`` on each axis reaches sqrt(2) x that."""
-        reach = math.sqrt(2.0) * self.table_offset
-        board = self.fixture == "board"
-        sizes = ((self.board_width, self.board_depth) if board
-                 else (self.inner_size_x, self.inner_size_y))
-        edge = 0.0 if board else self.wall_thickness
-        for k, (axis, inner) in enumerate(zip("xy", sizes)):
-            need = inner[1] / 2 + edge + reach
-            half = self.table_size[k] / 2
+        """The fixture must stand on the table wherever its size, the table's size and their
+        placement are drawn. The table turns with the fixture, so this is per axis of the
+        fixture; an offset of up to ``table_offset`` on each axis reaches sqrt(2) x that."""
+        reach = (self.table_edge_margin if self.table_edge_margin is not None
+                 else math.sqrt(2.0) * self.table_offset)
+        for k, axis in enumerate("xy"):
+            need = self.fixture_outer_half(k) + reach
+            half = self.table_size[k][0] / 2
             if need > half:
                 raise ConfigError(
-                    f"{o}.table_size = {list(self.table_size)}: along {axis} the fixture "
-                    f"reaches {need:.3f} m from the table's centre (footprint, wall and "
-                    f"table_offset) but the table's half size is {half:.3f} m; make it at "
-                    f"least {2 * need:.3f} m")
+                    f"{o}.table_size = {[list(side) for side in self.table_size]}: along "
+                    f"{axis} the fixture reaches {need:.3f} m from the table's centre "
+                    f"(footprint, wall and table_offset or table_edge_margin) but the "
+                    f"smallest table's half size is {half:.3f} m; make it at least "
+                    f"{2 * need:.3f} m")
 
 
 @dataclass(frozen=True)
@@ -586,6 +602,9 @@ def _legacy_scene(data: dict) -> dict:
     for name in ("wall_height", "release_height"):
         if isinstance(data.get(name), (int, float)):
             data[name] = (data[name], data[name])
+    size = data.get("table_size")
+    if isinstance(size, (list, tuple)) and all(isinstance(v, (int, float)) for v in size):
+        data["table_size"] = tuple((v, v) for v in size)   # a fixed (x, y) pair
     if "release_offset" in data:
         offset = data.pop("release_offset")
         data.setdefault("release_margin", offset - data.get("inner_size_x", (1.0,))[0] / 2)

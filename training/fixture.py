@@ -295,11 +295,7 @@ def draw_fixture(scene: SceneConfig, yaw: float, base_z: float,
     x, y = (float(v) for v in rng.uniform(-offset, offset, 2)) if offset > 0 else (0.0, 0.0)
     table = None
     if scene.table_size is not None:
-        height = _uniform(rng, scene.table_height)
-        toff = scene.table_offset
-        tx, ty = (float(v) for v in rng.uniform(-toff, toff, 2)) if toff > 0 else (0.0, 0.0)
-        table = Table(scene.table_size[0] / 2, scene.table_size[1] / 2, x + tx, y + ty,
-                      base_z, base_z - height)
+        table = _draw_table(scene, geometry, x, y, yaw, base_z, rng)
     tilt, tilt_azimuth = 0.0, 0.0
     if scene.support_tilt_deg[1] > 0:
         tilt = _uniform(rng, scene.support_tilt_deg)
@@ -307,3 +303,24 @@ def draw_fixture(scene: SceneConfig, yaw: float, base_z: float,
     return FIXTURE_KINDS[scene.fixture](**geometry, x=x, y=y, yaw=yaw, base_z=base_z,
                                         table=table, tilt_deg=tilt,
                                         tilt_azimuth_deg=tilt_azimuth)
+
+
+def _draw_table(scene: SceneConfig, geometry: dict, x: float, y: float, yaw: float,
+                base_z: float, rng: np.random.Generator) -> Table:
+    """The table under the episode's fixture (base centre x, y): its size and height, and
+    where the fixture stands on it: within +-``table_offset`` of its centre along the world
+    axes, or with ``table_edge_margin`` anywhere along the fixture's axes that keeps its outer
+    footprint that far inside the table's edges."""
+    half_x, half_y = (_uniform(rng, side) / 2 for side in scene.table_size)
+    height = _uniform(rng, scene.table_height)
+    if scene.table_edge_margin is None:
+        toff = scene.table_offset
+        tx, ty = (float(v) for v in rng.uniform(-toff, toff, 2)) if toff > 0 else (0.0, 0.0)
+    else:
+        edge = 0.0 if scene.fixture == "board" else geometry["wall_thickness"]
+        free = [max(0.0, half - geometry[key] - edge - scene.table_edge_margin)
+                for half, key in ((half_x, "half_x"), (half_y, "half_y"))]
+        along_x, along_y = (float(rng.uniform(-f, f)) if f > 0 else 0.0 for f in free)
+        c, s = math.cos(yaw), math.sin(yaw)   # the fixture's axes in the world
+        tx, ty = c * along_x - s * along_y, s * along_x + c * along_y
+    return Table(half_x, half_y, x + tx, y + ty, base_z, base_z - height)
