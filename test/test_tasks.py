@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+import yaml
 
 from task_outcome_ros.labels import BACKGROUND, DEFAULT_TABLE, FIXTURE, LabelTable
 from training.config import ConfigError, DatasetConfig, DiscoverConfig
@@ -21,7 +22,7 @@ from training.fixture import Board, fixture_from_record
 from training.geometry import geometric_outcome, object_measurements
 from training.hard_cases import object_gap, object_tags
 from training.render import Camera, look_at, render, scene_boxes
-from training.scene import load_scene
+from training.scene import SCENES_DIR, load_scene
 from training.simulate import draw_episode, vertical_half_extent
 
 pytestmark = pytest.mark.unit
@@ -178,14 +179,26 @@ def test_hard_cases_follow_the_tasks_boundary():
     assert object_gap(m, "top") == pytest.approx(abs(m["top_above_region"]))
 
 
-# Digests of the first 30 episodes' draws (physics, fixture, camera) of seed 0, made by the
-# code before tables and fixtures became data (commit d836a58): those tasks' data must stay
-# what they were.
-DRAW_DIGESTS = {"default": "33689469f8c05215", "tote": "eecfd1578434643c"}
+# Digests of the first 30 episodes' draws (physics, fixture, camera) of seed 0, floats rounded
+# to 1e-9 so that the last bits of a CPU's vectorised maths do not count (the unrounded
+# digests of commit d836a58 differed on a machine of another CPU). Made by the package at
+# 0.8.0: the default task's data, and the tote spec's before it drew its table ("tote-0.8.0":
+# one 1.8 x 1.4 m table, the tote within +-5 cm of its centre), must stay what they were.
+DRAW_DIGESTS = {"default": "483f8708e4915b0a", "tote-0.8.0": "62ac15bd3b49268b"}
+
+
+def _rounded(value):
+    if isinstance(value, float):
+        return round(value, 9)
+    if isinstance(value, (list, tuple)):
+        return [_rounded(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _rounded(v) for k, v in value.items()}
+    return value
 
 
 @pytest.mark.parametrize("spec", sorted(DRAW_DIGESTS))
-def test_the_default_and_tote_tasks_draw_what_they_always_drew(spec):
+def test_the_default_and_older_tote_tasks_draw_what_they_always_drew(spec, tmp_path):
     import hashlib
     import json
     from dataclasses import asdict
@@ -193,7 +206,14 @@ def test_the_default_and_tote_tasks_draw_what_they_always_drew(spec):
     from training.render import draw_camera
     from training.seeding import episode_rng
 
-    cfg = load_scene(spec)
+    if spec == "tote-0.8.0":  # a spec with a fixed (x, y) table and table_offset still loads
+        data = yaml.safe_load((SCENES_DIR / "tote.yaml").read_text())
+        data["scene"].pop("table_edge_margin")
+        data["scene"].update(table_size=[1.8, 1.4], table_offset=0.05)
+        (tmp_path / "tote.yaml").write_text(yaml.safe_dump(data))
+        cfg = load_scene(tmp_path / "tote.yaml")
+    else:
+        cfg = load_scene(spec)
     digest = hashlib.sha256()
     for i in range(30):
         d = draw_episode(cfg.scene, episode_rng(0, i, "simulate"), episode_rng(0, i, "fixture"))
@@ -202,7 +222,8 @@ def test_the_default_and_tote_tasks_draw_what_they_always_drew(spec):
         record = [d.container_yaw, d.floor_z, d.friction, d.restitution, d.sizes, d.masses,
                   d.start_positions, d.start_orientations, fixture, d.shapes,
                   cam.position.tolist(), cam.rotation.tolist(), cam.fx, cam.cx, cam.cy]
-        digest.update(json.dumps(record, sort_keys=True).encode())
+        plain = json.loads(json.dumps(record))  # numpy scalars and tuples as plain JSON
+        digest.update(json.dumps(_rounded(plain), sort_keys=True).encode())
     assert digest.hexdigest()[:16] == DRAW_DIGESTS[spec]
 
 
