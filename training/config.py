@@ -242,11 +242,16 @@ class SceneConfig:
         if sum(w for _, w in self.shape_weights) <= 0:
             raise ConfigError(f"{o}.shape_weights: at least one shape needs a weight > 0")
 
+    def outer_half(self, inner_half: float) -> float:
+        """A fixture's outer half footprint from its inner one: an open box's wall stands
+        outside its footprint, a board's edge is the footprint's own."""
+        return inner_half + (0.0 if self.fixture == "board" else self.wall_thickness)
+
     def fixture_outer_half(self, axis: int) -> float:
         """Half the largest outer footprint the spec draws along the fixture's x (0) or y (1)."""
-        if self.fixture == "board":
-            return (self.board_width, self.board_depth)[axis][1] / 2
-        return (self.inner_size_x, self.inner_size_y)[axis][1] / 2 + self.wall_thickness
+        sizes = ((self.board_width, self.board_depth) if self.fixture == "board"
+                 else (self.inner_size_x, self.inner_size_y))
+        return self.outer_half(sizes[axis][1] / 2)
 
     def _validate_table(self, o: str) -> None:
         """The fixture must stand on the table wherever its size, the table's size and their

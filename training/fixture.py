@@ -317,8 +317,7 @@ def _draw_table(scene: SceneConfig, geometry: dict, x: float, y: float, yaw: flo
         toff = scene.table_offset
         tx, ty = (float(v) for v in rng.uniform(-toff, toff, 2)) if toff > 0 else (0.0, 0.0)
     else:
-        edge = 0.0 if scene.fixture == "board" else geometry["wall_thickness"]
-        free = [max(0.0, half - geometry[key] - edge - scene.table_edge_margin)
+        free = [max(0.0, half - scene.outer_half(geometry[key]) - scene.table_edge_margin)
                 for half, key in ((half_x, "half_x"), (half_y, "half_y"))]
         along_x, along_y = (float(rng.uniform(-f, f)) if f > 0 else 0.0 for f in free)
         c, s = math.cos(yaw), math.sin(yaw)   # the fixture's axes in the world
