@@ -5,7 +5,9 @@ model reported ``fell_outside`` everywhere, empty totes included. So every frame
 cheaply, against what the checkpoint was trained on (docs/interface.md §5):
 
 - the depth of the scene: the median valid depth must lie near the envelope's camera
-  distances (``DEPTH_SLACK``: what the training renders themselves span, with a margin);
+  distances (``DEPTH_SLACK``: what the training renders themselves span, with a margin; for a
+  task on a table, plus the drop to the room floor), and so must the median depth of the
+  fixture's pixels (``FIXTURE_DEPTH_SLACK``);
 - a support plane: enough of the frame must lie on the fitted floor (``MIN_SUPPORT_FRACTION``);
 - the fixture: the network must see it in a part of the frame (``MIN_FIXTURE_FRACTION``);
 - the camera: camera_info's focal length, scaled to the trained width, must lie in the
@@ -13,7 +15,7 @@ cheaply, against what the checkpoint was trained on (docs/interface.md §5):
 
 The thresholds come from the training renders of the bundled specs, not from any evaluation
 set: default (1.6-2.4 m) renders have median depths of 1.70-2.54 m and fixture fractions of
-0.15 or more; tote (0.5-1.3 m) renders 0.53-1.57 m and 0.027 or more.
+0.15 or more; tote (0.5-1.3 m) renders, on a table, 0.46-2.29 m and 0.027 or more.
 """
 
 from __future__ import annotations
@@ -25,11 +27,17 @@ import numpy as np
 
 from task_outcome_ros.camera import Intrinsics
 
-# Median valid depth within [lo x distance_min, hi x distance_max]: the renders span 0.95-1.3x
-# the look-at distance (the far floor pulls the median beyond it), so the bounds hold the
-# default renders (1.70-2.54 m in 1.44-3.0 m) and the tote's (0.53-1.57 m in 0.45-1.63 m)
-# while each refuses all of the other's.
+# The frame's median valid depth within [lo x distance_min, hi x distance_max]: on a floor the
+# renders span 0.93-1.3x the look-at distance (the far floor pulls the median beyond it), so
+# the bounds hold the default renders (1.70-2.54 m in 1.44-3.0 m).
 DEPTH_SLACK = (0.9, 1.25)
+# With a task on a table the room floor past the table's edge pulls the frame's median deeper
+# (tote renders: up to 2.1x the look-at distance, 2.29 m), so the upper bound adds the drop
+# from the table top to the room floor. The fixture is what the camera distance is measured
+# to: its median depth is 0.77-1.28x the look-at distance in the training renders (default
+# 0.93-1.11, tote 0.85-1.28, shelf 0.77-1.06; 300-3,000 renders each), whatever else is in
+# view, so it refuses what the frame's median alone lets through.
+FIXTURE_DEPTH_SLACK = (0.7, 1.4)
 MIN_VALID_FRACTION = 0.2     # of the frame's pixels
 MIN_SUPPORT_FRACTION = 0.05  # of the valid working-size pixels within SUPPORT_BAND_M of it
 SUPPORT_BAND_M = 0.01
@@ -46,6 +54,7 @@ class Envelope:
     height: int
     focal_px: tuple[float, float]       # fx at ``width``
     distance_m: tuple[float, float]     # camera to the fixture's centre
+    support_drop_m: float = 0.0         # table top to room floor (0: the support is the floor)
 
     @classmethod
     def from_dataset_config(cls, dataset: dict[str, Any]) -> Envelope | None:
@@ -54,15 +63,24 @@ class Envelope:
         camera = (dataset or {}).get("camera")
         if not camera:
             return None
+        scene = dataset.get("scene") or {}
+        drop = max(scene["table_height"]) if scene.get("table_size") is not None else 0.0
         return cls(str(dataset.get("task", "default")), int(camera["width"]),
                    int(camera["height"]), tuple(float(v) for v in camera["focal_px"]),
-                   tuple(float(v) for v in camera["distance"]))
+                   tuple(float(v) for v in camera["distance"]), float(drop))
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     def depth_range(self) -> tuple[float, float]:
-        return self.distance_m[0] * DEPTH_SLACK[0], self.distance_m[1] * DEPTH_SLACK[1]
+        """Where the frame's median depth may lie."""
+        return (self.distance_m[0] * DEPTH_SLACK[0],
+                self.distance_m[1] * DEPTH_SLACK[1] + self.support_drop_m)
+
+    def fixture_depth_range(self) -> tuple[float, float]:
+        """Where the median depth of the fixture's pixels may lie."""
+        return (self.distance_m[0] * FIXTURE_DEPTH_SLACK[0],
+                self.distance_m[1] * FIXTURE_DEPTH_SLACK[1])
 
     def focal_range(self, width: int) -> tuple[float, float]:
         """The trained fx range for an image ``width`` px wide (with the slack)."""
@@ -79,6 +97,7 @@ class FrameStats:
     median_depth_m: float | None
     support_fraction: float | None      # None: the model has no height channel
     fixture_fraction: float
+    fixture_depth_m: float | None = None  # median depth of its pixels; None: not seen
 
 
 def frame_stats(depth: np.ndarray, labels: np.ndarray, heights_m: np.ndarray | None,
@@ -93,8 +112,12 @@ def frame_stats(depth: np.ndarray, labels: np.ndarray, heights_m: np.ndarray | N
         finite = np.isfinite(heights_m)
         support = (float(np.mean(np.abs(heights_m[finite]) < SUPPORT_BAND_M))
                    if finite.any() else 0.0)
-    fixture = float(np.count_nonzero(labels[valid] == fixture_id) / n_valid) if n_valid else 0.0
-    return FrameStats(n_valid / depth.size, median, support, fixture)
+    on_fixture = valid & (labels == fixture_id)
+    n_fixture = int(np.count_nonzero(on_fixture))
+    fixture = n_fixture / n_valid if n_valid else 0.0
+    fixture_depth = (float(np.median(depth[on_fixture]))
+                     if n_fixture and fixture >= MIN_FIXTURE_FRACTION else None)
+    return FrameStats(n_valid / depth.size, median, support, fixture, fixture_depth)
 
 
 def check(envelope: Envelope | None, stats: FrameStats,
@@ -113,6 +136,10 @@ def check(envelope: Envelope | None, stats: FrameStats,
         why.append("no support plane found")
     if stats.fixture_fraction < MIN_FIXTURE_FRACTION:
         why.append("fixture not seen")
+    flo, fhi = envelope.fixture_depth_range()
+    if stats.fixture_depth_m is not None and not flo <= stats.fixture_depth_m <= fhi:
+        why.append(f"fixture at {stats.fixture_depth_m:.2f} m, trained "
+                   f"{envelope.distance_m[0]:g}-{envelope.distance_m[1]:g} m")
     if intrinsics is not None:
         flo, fhi = envelope.focal_range(intrinsics.width)
         if not flo <= intrinsics.fx <= fhi:

@@ -356,7 +356,8 @@ class OutcomeSegmenter:
         # The valid share of the full-resolution frame, not of the working size
         # (count_nonzero: a bool mean converts every pixel to float first).
         return FrameStats(np.count_nonzero(frame_valid) / frame_valid.size, stats.median_depth_m,
-                          stats.support_fraction, stats.fixture_fraction)
+                          stats.support_fraction, stats.fixture_fraction,
+                          stats.fixture_depth_m)
 
     def prepare(self, depth: np.ndarray, intrinsics: Intrinsics | None = None) -> np.ndarray:
         """Sanitised depth (NaN invalid) -> the network's (C, h, w) input: everything

@@ -101,8 +101,14 @@ def test_frames_outside_the_envelope_are_flagged_with_the_reason(segmenter, case
 
 
 def test_the_tote_envelope_refuses_default_frames_and_takes_its_own():
-    far = FrameStats(0.95, 2.1, 0.5, 0.2)  # a default-task frame
-    assert check(TOTE, far) == ["median depth 2.10 m, trained 0.5-1.3 m"]
+    far = FrameStats(0.95, 2.1, 0.5, 0.2, 2.1)  # a default-task frame: its container at 2.1 m
+    assert check(TOTE, far) == ["fixture at 2.10 m, trained 0.5-1.3 m"]
+    # The tote near its table's edge, the room floor 0.8 m further down filling the frame:
+    # the frame's median is deep, the tote itself at a trained distance.
+    assert TOTE.support_drop_m == 0.8 and DEFAULT.support_drop_m == 0.0
+    assert check(TOTE, FrameStats(0.9, 2.2, 0.3, 0.05, 1.1)) == []
+    assert check(TOTE, FrameStats(0.9, 2.5, 0.3, 0.05, 1.1)) == [
+        "median depth 2.50 m, trained 0.5-1.3 m"]
     assert check(TOTE, FrameStats(0.9, 0.95, 0.4, 0.05)) == []
     k = Intrinsics(1280, 720, 900.0, 900.0, 639.5, 359.5)  # 450 px at 640: in 380-620
     assert check(TOTE, FrameStats(0.9, 0.95, 0.4, 0.05), k) == []
@@ -117,8 +123,12 @@ def test_frame_stats_on_a_hand_made_frame():
     heights = np.where(np.isfinite(depth), 0.0, np.nan)
     heights[3] = 0.2
     stats = frame_stats(depth, labels, heights, fixture_id=1)
-    assert stats == FrameStats(0.75, 1.0, 10 / 15, 3 / 15)
-    assert check(DEFAULT, stats) == ["median depth 1.00 m, trained 1.6-2.4 m"]
+    assert stats == FrameStats(0.75, 1.0, 10 / 15, 3 / 15, 1.0)
+    assert check(DEFAULT, stats) == ["median depth 1.00 m, trained 1.6-2.4 m",
+                                     "fixture at 1.00 m, trained 1.6-2.4 m"]
+    labels[1, :3] = 0  # no fixture: no fixture depth to check
+    unseen = frame_stats(depth, labels, heights, fixture_id=1)
+    assert unseen.fixture_depth_m is None and "fixture not seen" in check(DEFAULT, unseen)
     empty = frame_stats(np.full((2, 2), np.nan), np.zeros((2, 2), np.uint8), None, 1)
     assert "only 0% of the pixels have depth" in check(DEFAULT, empty)
 
