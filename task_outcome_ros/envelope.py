@@ -64,7 +64,10 @@ class Envelope:
         if not camera:
             return None
         scene = dataset.get("scene") or {}
-        drop = max(scene["table_height"]) if scene.get("table_size") is not None else 0.0
+        drop = 0.0
+        if scene.get("table_size") is not None:  # a table: the room floor lies this far below
+            height = scene.get("table_height", 0.0)
+            drop = max(height) if isinstance(height, (list, tuple)) else float(height)
         return cls(str(dataset.get("task", "default")), int(camera["width"]),
                    int(camera["height"]), tuple(float(v) for v in camera["focal_px"]),
                    tuple(float(v) for v in camera["distance"]), float(drop))
