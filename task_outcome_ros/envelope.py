@@ -64,10 +64,9 @@ class Envelope:
         if not camera:
             return None
         scene = dataset.get("scene") or {}
-        drop = 0.0
-        if scene.get("table_size") is not None:  # a table: the room floor lies this far below
-            height = scene.get("table_height", 0.0)
-            drop = max(height) if isinstance(height, (list, tuple)) else float(height)
+        # A task on a table: the room floor lies up to the highest table top below it (the
+        # spec's table_height is always a validated (min, max) pair).
+        drop = max(scene["table_height"]) if scene.get("table_size") is not None else 0.0
         return cls(str(dataset.get("task", "default")), int(camera["width"]),
                    int(camera["height"]), tuple(float(v) for v in camera["focal_px"]),
                    tuple(float(v) for v in camera["distance"]), float(drop))

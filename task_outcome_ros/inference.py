@@ -10,6 +10,7 @@ outcome names are the checkpoint's label table (``OutcomeSegmenter.table``).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.resources
 import time
 from dataclasses import dataclass, field
@@ -355,9 +356,8 @@ class OutcomeSegmenter:
         stats = frame_stats(metres, small, heights, FIXTURE)
         # The valid share of the full-resolution frame, not of the working size
         # (count_nonzero: a bool mean converts every pixel to float first).
-        return FrameStats(np.count_nonzero(frame_valid) / frame_valid.size, stats.median_depth_m,
-                          stats.support_fraction, stats.fixture_fraction,
-                          stats.fixture_depth_m)
+        return dataclasses.replace(
+            stats, valid_fraction=np.count_nonzero(frame_valid) / frame_valid.size)
 
     def prepare(self, depth: np.ndarray, intrinsics: Intrinsics | None = None) -> np.ndarray:
         """Sanitised depth (NaN invalid) -> the network's (C, h, w) input: everything
