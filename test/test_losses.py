@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from task_outcome_ros.labels import DEFAULT_TABLE, IGNORE
-from training.losses import outcome_lovasz_loss
+from training.losses import object_balance_weights, outcome_lovasz_loss
+from training.train import weighted_cross_entropy
 
 pytestmark = pytest.mark.unit
 
@@ -61,3 +63,46 @@ def test_ignored_pixels_take_no_part_and_truncation_keeps_the_largest_errors():
     # Keeping only the largest errors changes the value a little, not the nature.
     truncated = float(outcome_lovasz_loss(logits.detach(), labels, top_k=300))
     assert 0 < truncated <= float(loss) + 1e-6 and truncated > 0.9 * float(loss)
+
+
+def _two_objects() -> torch.Tensor:
+    """One image: a 20 x 20 fell_outside object, a 2 x 2 fell_outside sliver, a 10 x 10
+    stuck_on_rim object, and a row of pixels without depth."""
+    labels = torch.zeros(1, 40, 60, dtype=torch.long)
+    fell = DEFAULT_TABLE.outcome_ids["fell_outside"]
+    stuck = DEFAULT_TABLE.outcome_ids["stuck_on_rim"]
+    labels[0, 5:25, 5:25] = fell
+    labels[0, 30:32, 50:52] = fell
+    labels[0, 5:15, 40:50] = stuck
+    labels[0, 39] = IGNORE
+    return labels
+
+
+def test_object_balance_weighs_small_objects_up_to_the_reference_and_the_cap():
+    labels = _two_objects()
+    ids = sorted(DEFAULT_TABLE.outcome_ids.values())
+    w = object_balance_weights(labels, ids, reference_pixels=200, max_weight=16.0)
+    assert w.shape == labels.shape and w.dtype == torch.float32
+    assert torch.all(w[0, 5:25, 5:25] == 1.0)             # 400 px: larger than the reference
+    assert torch.all(w[0, 5:15, 40:50] == 2.0)            # 100 px: 200 / 100
+    assert torch.all(w[0, 30:32, 50:52] == 16.0)          # 4 px: 50, capped at 16
+    assert torch.all(w[0, 39] == 1.0) and w[0, 0, 0] == 1.0  # ignored and background
+    # Each outcome's components are counted apart: the sliver does not share the box's area.
+    w_big = object_balance_weights(labels, ids, reference_pixels=4, max_weight=16.0)
+    assert torch.all(w_big == 1.0)
+
+
+def test_pixel_weighted_cross_entropy_is_the_class_weighted_mean_when_weights_are_one():
+    gen = torch.Generator().manual_seed(3)
+    labels = _two_objects()
+    logits = torch.randn(1, DEFAULT_TABLE.num_classes, 40, 60, generator=gen)
+    class_w = torch.tensor([0.5, 0.8, 1.2, 1.5, 1.0])
+    plain = F.cross_entropy(logits, labels, weight=class_w, ignore_index=IGNORE)
+    ones = weighted_cross_entropy(logits, labels, class_w, torch.ones(labels.shape))
+    assert torch.allclose(plain, ones, atol=1e-6)
+    # Weighing the sliver up moves the loss towards the sliver's own loss.
+    boosted = torch.ones(labels.shape)
+    boosted[0, 30:32, 50:52] = 50.0
+    sliver = F.cross_entropy(logits[..., 30:32, 50:52], labels[:, 30:32, 50:52])
+    assert abs(weighted_cross_entropy(logits, labels, class_w, boosted) - sliver) < \
+        abs(plain - sliver)

@@ -274,6 +274,11 @@ def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
     headed = dataclasses.replace(cfg, space_to_depth=2, full_size_head=8)
     assert resume_differences(unfolded, headed, "bf16", "bf16") == [
         "full_size_head: 0 -> 8", "space_to_depth: 1 -> 2"]
+    # Saved before object_balance_pixels existed: plain class weights, i.e. 0.
+    unbalanced = {k: v for k, v in saved.items() if k != "object_balance_pixels"}
+    assert resume_differences(unbalanced, cfg, "bf16", "bf16") == []
+    assert resume_differences(unbalanced, dataclasses.replace(cfg, object_balance_pixels=64),
+                              "bf16", "bf16") == ["object_balance_pixels: 0 -> 64"]
     assert resume_differences(saved, cfg, "bf16", "fp32") == ["precision: bf16 -> fp32"]
     old = {k: v for k, v in saved.items() if k != "lovasz_weight"}     # predates the field
     assert resume_differences(old, cfg, "bf16", "bf16") == [
@@ -293,13 +298,15 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
 
     run = tmp_path / "run"
     shutil.copytree(small_run, run, ignore=shutil.ignore_patterns("train", "eval"))
+    # The object-balanced cross-entropy rides along: its weights go through the real loop.
     r = _cli("train", "--out", str(run), "--epochs", "1", "--batch-size", "8", "--device",
-             "cpu", "--amp", "off", "--no-channels-last")
+             "cpu", "--amp", "off", "--no-channels-last", "--object-balance-pixels", "64")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "train: cpu, fp32, contiguous activations" in r.stdout
     from task_outcome_ros import checkpoint
 
     ckpt = checkpoint.load(run / "train" / "best.pt")
+    assert ckpt.train_config["train"]["object_balance_pixels"] == 64
     assert ckpt.train_config["train"]["channels_last"] is False
     assert ckpt.train_config["train"]["amp"] == "off"
     assert ckpt.extra["precision"] == "fp32"

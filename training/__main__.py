@@ -162,6 +162,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lovasz-weight", type=float, default=None,
                    help="weight of the per-image outcome IoU (Lovász) loss added to "
                         "cross-entropy (default 0.5; 0 = off)")
+    p.add_argument("--object-balance-pixels", type=non_negative_int, default=None,
+                   help="cross-entropy weighs each outcome object smaller than this many "
+                        "working-size pixels like one of this size, so small objects count "
+                        "like large ones (default 0 = off)")
     p.add_argument("--camera-intrinsics", action=argparse.BooleanOptionalAction, default=None,
                    help="height channel from each image's own intrinsics (camera_info on the "
                         "robot) instead of the nominal camera's")
@@ -185,6 +189,7 @@ def resolve_train_config(args: argparse.Namespace):
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
               "channels_last": "channels_last", "near_boundary_weight": "near_boundary_weight",
               "aug_noise": "aug_noise", "lovasz_weight": "lovasz_weight",
+              "object_balance_pixels": "object_balance_pixels",
               "camera_intrinsics": "camera_intrinsics", "space_to_depth": "space_to_depth",
               "full_size_head": "full_size_head"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}

@@ -720,6 +720,11 @@ class TrainConfig:
     # all-correct 0.982 -> 0.986 (validation), 0.980 -> 0.982 (seed-1), 0.980 -> 0.987 on the
     # first 1,000 training images, for ~6 % more time per step (bench/train_step.py).
     lovasz_weight: float = 0.5
+    # Object-balanced cross-entropy (losses.object_balance_weights): an outcome's connected
+    # component smaller than this many working-size pixels weighs as much as one of this
+    # size, so small objects (slivers at the frame's edge, far objects on a room floor) count
+    # like large ones, as they do in the image metric; 0 = off (plain class weights).
+    object_balance_pixels: int = 0
     # Height channel from each image's own camera (the dataset's camera records; camera_info
     # on the robot) instead of the envelope's nominal one, whose focal length can be 6 % off:
     # 3 mm of height error at the rim on average, up to 14 mm, as much as a near-rim box's
@@ -763,6 +768,7 @@ class TrainConfig:
         _check_range(o, "near_boundary_weight", self.near_boundary_weight, 1.0, 100.0)
         _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
         _check_range(o, "lovasz_weight", self.lovasz_weight, 0.0, 100.0)
+        _check_int(o, "object_balance_pixels", self.object_balance_pixels, 0, 1_000_000)
         _check_int(o, "threads", self.threads, 1, 256)
         for name, value, allowed in (("device", self.device, ("cpu", "cuda", "auto")),
                                      ("amp", self.amp, ("auto", "bf16", "off"))):

@@ -22,6 +22,8 @@ working pixels made a training step about 23 % slower; the top 2,048 cost 6 %
 
 from __future__ import annotations
 
+import cv2
+import numpy as np
 import torch
 
 from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE
@@ -50,3 +52,37 @@ def outcome_lovasz_loss(logits: torch.Tensor, labels: torch.Tensor, top_k: int =
     jaccard = 1.0 - (area - truth_sorted.cumsum(-1)) / (area + (1.0 - truth_sorted).cumsum(-1))
     weights = torch.cat([jaccard[..., :1], jaccard[..., 1:] - jaccard[..., :-1]], dim=-1)
     return (errors.clamp_min(0.0) * weights).sum(-1).mean()
+
+
+# The largest weight a small object's pixels get: a component of a few working pixels (a
+# sliver at the frame's edge) counts like one of reference_pixels / 16, not like a whole object,
+# so that label noise on single pixels cannot dominate a batch.
+OBJECT_BALANCE_MAX_WEIGHT = 16.0
+
+
+def object_balance_weights(labels: torch.Tensor, outcome_ids: list[int], reference_pixels: int,
+                           max_weight: float) -> torch.Tensor:
+    """Per-pixel cross-entropy weights that make every object count, not every pixel.
+
+    Why: the image metric asks whether each outcome is present, so a fallen object with 80
+    pixels in view matters as much as one with 8,000; pixel cross-entropy charges missing it
+    1 %. Tote model 0.9.0 predicted *no* pixel on 36 of its 37 missed fallen objects (68-1,044
+    px at 640 x 480), and missed them as often on training images (recall 0.931) as on
+    validation: the loss never asked for them. Here each 8-connected component of an outcome
+    class smaller than ``reference_pixels`` (working-size pixels) weighs as much as one of
+    ``reference_pixels``: its pixels get ``reference_pixels / area``, at most ``max_weight``.
+    Touching objects of one outcome form one component; that is the unit the presence rule
+    sees too. labels (N, H, W) long; returns (N, H, W) float32, 1 elsewhere."""
+    weights = np.ones(labels.shape, np.float32)
+    lab = labels.cpu().numpy()
+    for i in range(lab.shape[0]):
+        for outcome in outcome_ids:
+            mask = (lab[i] == outcome).astype(np.uint8)
+            if not mask.any():
+                continue
+            _, components, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+            area = stats[:, cv2.CC_STAT_AREA].astype(np.float32)
+            boost = np.clip(reference_pixels / np.maximum(area, 1.0), 1.0, max_weight)
+            boost[0] = 1.0                                  # component 0: not this outcome
+            weights[i] = np.where(mask.astype(bool), boost[components], weights[i])
+    return torch.from_numpy(weights).to(labels.device)

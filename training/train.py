@@ -60,7 +60,11 @@ from training.config import (
 )
 from training.dataset import load_cache, load_manifest, manifest_table
 from training.hard_cases import episode_hard_cases
-from training.losses import outcome_lovasz_loss
+from training.losses import (
+    OBJECT_BALANCE_MAX_WEIGHT,
+    object_balance_weights,
+    outcome_lovasz_loss,
+)
 
 WARMUP_FRACTION = 0.03
 # The sensor's axial noise per 640 x 480 pixel, as sd / z^2 (robust sd of noisy - clean depth
@@ -265,16 +269,34 @@ def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
     return depth, valid, labels, intrinsics
 
 
+def weighted_cross_entropy(logits: torch.Tensor, labels: torch.Tensor,
+                           class_weights: torch.Tensor | None,
+                           pixel_weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Cross-entropy ignoring 255, weighted by class and, when given, by pixel: the weighted
+    mean sum(p w[y] l) / sum(p w[y]), which is ``F.cross_entropy``'s own mean when every
+    pixel weight is 1."""
+    if pixel_weights is None:
+        return F.cross_entropy(logits, labels, weight=class_weights, ignore_index=IGNORE)
+    per_pixel = F.cross_entropy(logits, labels, weight=class_weights, ignore_index=IGNORE,
+                                reduction="none")            # w[y] l, 0 where ignored
+    keep = labels != IGNORE
+    w_y = (class_weights[labels.clamp_max(len(class_weights) - 1)]
+           if class_weights is not None else torch.ones_like(per_pixel))
+    total = (pixel_weights * w_y * keep).sum()
+    return (pixel_weights * per_pixel).sum() / total.clamp_min(1e-12)
+
+
 def optimise_step(model, optim, x: torch.Tensor, labels: torch.Tensor,
-                  weights: torch.Tensor | None, autocast, scaler, lovasz_weight: float = 0.0
-                  ) -> torch.Tensor:
-    """Forward (under ``autocast``), class-weighted cross-entropy ignoring 255 (plus
+                  weights: torch.Tensor | None, autocast, scaler, lovasz_weight: float = 0.0,
+                  pixel_weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Forward (under ``autocast``), class-weighted cross-entropy ignoring 255 (per pixel
+    weighted by ``pixel_weights`` too when given, ``losses.object_balance_weights``; plus
     ``lovasz_weight`` x the per-image outcome IoU loss, ``losses.py``), backward and one
     optimiser step (through the grad scaler when there is one). Returns the loss."""
     with autocast():
         logits = model(x)
     logits = logits.float()          # both losses in fp32; one cast, not one per loss
-    loss = F.cross_entropy(logits, labels, weight=weights, ignore_index=IGNORE)
+    loss = weighted_cross_entropy(logits, labels, weights, pixel_weights)
     if lovasz_weight > 0:
         loss = loss + lovasz_weight * outcome_lovasz_loss(logits, labels)
     optim.zero_grad(set_to_none=True)
@@ -361,7 +383,7 @@ RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
 # Training fields saved under an older name: the same setting (a resume is not refused).
 RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
-ADDED_TRAIN_FIELDS = dict(LATER_NETWORK_OPTIONS)
+ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0}
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
@@ -441,6 +463,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
                                                   cfg.near_boundary_weight)
 
     model_args = {**cfg.model_args, "num_classes": table.num_classes}
+    outcome_ids = sorted(table.outcome_ids.values())
     model = build_model(model_args).to(device)
     memory_format = torch.channels_last if cfg.channels_last else torch.contiguous_format
     model = model.to(memory_format=memory_format)
@@ -501,8 +524,11 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
             labels = labels.to(device)
             for group in optim.param_groups:
                 group["lr"] = lr_at(epoch * steps_per_epoch + b, total_steps, cfg.lr)
+            balance = (object_balance_weights(labels, outcome_ids, cfg.object_balance_pixels,
+                                              OBJECT_BALANCE_MAX_WEIGHT)
+                       if cfg.object_balance_pixels else None)
             loss = optimise_step(model, optim, x, labels, weights, autocast, scaler,
-                                 cfg.lovasz_weight)
+                                 cfg.lovasz_weight, balance)
             average.update(model)
             losses.append(loss.item())
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
