@@ -54,9 +54,8 @@ def outcome_lovasz_loss(logits: torch.Tensor, labels: torch.Tensor, top_k: int =
     return (errors.clamp_min(0.0) * weights).sum(-1).mean()
 
 
-# The largest weight a small object's pixels get: a component of a few working pixels (a
-# sliver at the frame's edge) counts like one of reference_pixels / 16, not like a whole object,
-# so that label noise on single pixels cannot dominate a batch.
+# The largest weight a small object's pixels get: a component of a working pixels counts like
+# at most 16 a pixels, so a stray pixel or two of label noise cannot count like a whole object.
 OBJECT_BALANCE_MAX_WEIGHT = 16.0
 
 
@@ -77,12 +76,12 @@ def object_balance_weights(labels: torch.Tensor, outcome_ids: list[int], referen
     lab = labels.cpu().numpy()
     for i in range(lab.shape[0]):
         for outcome in outcome_ids:
-            mask = (lab[i] == outcome).astype(np.uint8)
+            mask = lab[i] == outcome
             if not mask.any():
                 continue
-            _, components, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+            _, components, stats, _ = cv2.connectedComponentsWithStats(
+                mask.astype(np.uint8), connectivity=8)
             area = stats[:, cv2.CC_STAT_AREA].astype(np.float32)
             boost = np.clip(reference_pixels / np.maximum(area, 1.0), 1.0, max_weight)
-            boost[0] = 1.0                                  # component 0: not this outcome
-            weights[i] = np.where(mask.astype(bool), boost[components], weights[i])
+            weights[i][mask] = boost[components[mask]]
     return torch.from_numpy(weights).to(labels.device)
