@@ -18,6 +18,15 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    version of ``floor.fit_floor`` the network was trained on; a checkpoint without it was
    trained on version 1 (models up to 0.1.7) and keeps getting it. ``support_above_floor``
    (tasks on a table): heights from the table top when the room floor is in view too.
+3. local relief (``local_relief``): the height above the morphological opening of the heights
+   with a square window of ``relief_window_px`` working pixels, / ``height_scale_m``, in
+   [0, clip]. Present when the dict has ``relief_window_px`` (with a height channel). Why: the
+   height channel measures from one support plane, so a 3 cm box on the room floor 0.75 m
+   below a table reads -0.72 next to the floor's -0.75, a contrast lost in the table-to-floor
+   step, while the same box on the table reads 0.03 against 0. The relief reads 0.03 for
+   both: a small object stands out the same on any surface, by construction. Surfaces wider
+   than the window (a table top, a tote's floor) read 0 up to their edges; narrow ones (walls)
+   read their height.
 
 The channels are computed in one place, ``network_input`` (torch), after the one resize,
 ``resize_depth`` (numpy, NaN-aware area average). ``preprocess`` (one numpy image) and
@@ -54,6 +63,7 @@ DEFAULT_NORMALISATION: dict[str, Any] = {
     "height_scale_m": 0.25, "focal_over_width": FOCAL_OVER_WIDTH,
     "floor_fit": FLOOR_FIT}
 _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
+RELIEF_WINDOW_RANGE = (3, 63)  # odd working pixels: a window centred on its pixel
 _FLOOR_FITS = FLOOR_FITS
 # normalisation["intrinsics"]: where the height channel's camera comes from in training.
 INTRINSICS_FROM_CAMERA_INFO = "camera_info"
@@ -94,14 +104,22 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
             raise ValueError(f"normalisation 'support_above_floor' must be a (min, max) height "
                              f"in metres with a height channel, got {norm!r}")
         out["support_above_floor"] = [float(band[0]), float(band[1])]
+    if "relief_window_px" in norm:
+        window, (lo, hi) = norm["relief_window_px"], RELIEF_WINDOW_RANGE
+        if ("height_scale_m" not in out or type(window) is not int or not lo <= window <= hi
+                or window % 2 == 0):
+            raise ValueError(f"normalisation 'relief_window_px' must be an odd int in "
+                             f"[{lo}, {hi}] with a height channel, got {norm!r}")
+        out["relief_window_px"] = window
     if not all(out.get(k, 1.0) > 0 for k in ("scale_m", "clip", *_HEIGHT_FIELDS)):
         raise ValueError(f"normalisation needs positive scales and clip, got {norm!r}")
     return out
 
 
 def input_channels(normalisation: dict[str, Any]) -> int:
-    """How many channels ``network_input`` makes with this normalisation (2 or 3)."""
-    return 3 if "height_scale_m" in check_normalisation(normalisation) else 2
+    """How many channels ``network_input`` makes with this normalisation (2, 3 or 4)."""
+    norm = check_normalisation(normalisation)
+    return 2 + ("height_scale_m" in norm) + ("relief_window_px" in norm)
 
 
 def check_input_size(size: Any) -> tuple[int, int]:
@@ -193,8 +211,9 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
                   intrinsics: torch.Tensor | None = None,
                   floor_tracker: FloorTracker | None = None) -> torch.Tensor:
     """(N, h, w) working-size depth (metres, as ``resize_depth`` gives) and valid fraction ->
-    (N, C, h, w) network input (C = 2, or 3 with heights). Training uses this on its cached
-    ``resize_depth`` output, after augmentation, so heights follow the augmented depth.
+    (N, C, h, w) network input (C = 2, 3 with heights, 4 with their local relief). Training
+    uses this on its cached ``resize_depth`` output, after augmentation, so heights follow the
+    augmented depth.
 
     ``intrinsics`` (N, 4), ``camera.Intrinsics.normalised`` per image, are used for the heights
     only when the normalisation says the network was trained with them; else the nominal
@@ -211,7 +230,48 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
                                     norm["floor_fit"], norm.get("support_above_floor"),
                                     floor_tracker)
         channels.append((height / norm["height_scale_m"]).clamp(-norm["clip"], norm["clip"]))
+        if "relief_window_px" in norm:
+            relief = local_relief(height, has, norm["relief_window_px"])
+            channels.append((relief / norm["height_scale_m"]).clamp(0.0, norm["clip"]))
     return torch.stack(channels, dim=1)
+
+
+def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int) -> torch.Tensor:
+    """(N, h, w) heights (metres) and validity -> height above their morphological opening
+    with a ``window`` x ``window`` square (metres, >= 0; 0 where invalid).
+
+    The opening (erosion, then dilation) keeps every surface a window fits on and flattens
+    what is narrower, so what remains is each small object's or wall's height above the
+    surface around it, whichever surface that is. Invalid pixels neither lower the erosion
+    nor raise the dilation; a window with no valid pixel leaves its pixel's relief 0."""
+    height = height.float()
+    inf = torch.tensor(float("inf"), device=height.device)
+    eroded = -square_max(-torch.where(valid, height, inf), window)
+    eroded = torch.where(torch.isinf(eroded), -inf, eroded)  # no valid pixel: no support
+    relief = height - square_max(eroded, window)
+    return torch.where(valid & torch.isfinite(relief), relief.clamp_min(0.0),
+                       torch.zeros_like(height))
+
+
+def square_max(x: torch.Tensor, window: int) -> torch.Tensor:
+    """(N, h, w) float32 -> the max over the centred ``window`` x ``window`` square around
+    each pixel; beyond the border counts as -inf (it never wins). On the CPU OpenCV's dilation
+    does it (0.03 ms at 160 x 120, 20x faster than torch's stride-1 max-pool); elsewhere
+    ``square_max_torch``, which gives the same values."""
+    if x.device.type != "cpu":
+        return square_max_torch(x, window)
+    kernel = np.ones((window, window), np.uint8)
+    planes = x.detach().contiguous().numpy()
+    return torch.from_numpy(np.stack([
+        cv2.dilate(plane, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+        for plane in planes]).reshape(planes.shape))
+
+
+def square_max_torch(x: torch.Tensor, window: int) -> torch.Tensor:
+    """``square_max`` as two separable max-pools (a row pass, then a column pass)."""
+    pad = window // 2
+    rows = F.max_pool2d(x[:, None], (1, window), stride=1, padding=(0, pad))
+    return F.max_pool2d(rows, (window, 1), stride=1, padding=(pad, 0))[:, 0]
 
 
 def _conv_block(c_in: int, c_out: int, n_convs: int = 2) -> nn.Sequential:

@@ -77,6 +77,11 @@ def test_train_config_validation_names_the_field():
         TrainConfig(max_width=4).validate()
     with pytest.raises(ConfigError, match="train.near_boundary_weight"):
         TrainConfig(near_boundary_weight=0.5).validate()
+    with pytest.raises(ConfigError, match="train.relief_window_px must be odd"):
+        TrainConfig(relief_window_px=8).validate()
+    with pytest.raises(ConfigError, match="train.relief_window_px"):
+        TrainConfig(relief_window_px=65).validate()
+    assert TrainConfig(relief_window_px=15).validate().relief_window_px == 15
     with pytest.raises(ConfigError, match="train.full_size_head = 8 needs space_to_depth 2"):
         TrainConfig(full_size_head=8).validate()
     with pytest.raises(ConfigError, match="train.full_size_head"):
@@ -298,15 +303,18 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
 
     run = tmp_path / "run"
     shutil.copytree(small_run, run, ignore=shutil.ignore_patterns("train", "eval"))
-    # The object-balanced cross-entropy rides along: its weights go through the real loop.
+    # The object-balanced cross-entropy and the relief channel ride along: its weights and
+    # its fourth input channel go through the real loop.
     r = _cli("train", "--out", str(run), "--epochs", "1", "--batch-size", "8", "--device",
-             "cpu", "--amp", "off", "--no-channels-last", "--object-balance-pixels", "64")
+             "cpu", "--amp", "off", "--no-channels-last", "--object-balance-pixels", "64",
+             "--relief-window-px", "5")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "train: cpu, fp32, contiguous activations" in r.stdout
     from task_outcome_ros import checkpoint
 
     ckpt = checkpoint.load(run / "train" / "best.pt")
     assert ckpt.train_config["train"]["object_balance_pixels"] == 64
+    assert ckpt.normalisation["relief_window_px"] == 5 and ckpt.model_args["in_channels"] == 4
     assert ckpt.train_config["train"]["channels_last"] is False
     assert ckpt.train_config["train"]["amp"] == "off"
     assert ckpt.extra["precision"] == "fp32"

@@ -725,6 +725,10 @@ class TrainConfig:
     # size, so small objects (slivers at the frame's edge, far objects on a room floor) count
     # like large ones, as they do in the image metric; 0 = off (plain class weights).
     object_balance_pixels: int = 0
+    # A fourth input channel, the heights' local relief (model.local_relief) over a square of
+    # this many working pixels: a small object reads its own height above whatever surface it
+    # lies on (a room floor 0.75 m below the table included); 0 = off (three channels).
+    relief_window_px: int = 0
     # Height channel from each image's own camera (the dataset's camera records; camera_info
     # on the robot) instead of the envelope's nominal one, whose focal length can be 6 % off:
     # 3 mm of height error at the rim on average, up to 14 mm, as much as a near-rim box's
@@ -769,6 +773,14 @@ class TrainConfig:
         _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
         _check_range(o, "lovasz_weight", self.lovasz_weight, 0.0, 100.0)
         _check_int(o, "object_balance_pixels", self.object_balance_pixels, 0, 1_000_000)
+        if self.relief_window_px:
+            from task_outcome_ros.model import RELIEF_WINDOW_RANGE
+
+            lo, hi = RELIEF_WINDOW_RANGE
+            _check_int(o, "relief_window_px", self.relief_window_px, lo, hi)
+            if self.relief_window_px % 2 == 0:
+                raise ConfigError(f"{o}.relief_window_px must be odd (a window centred on its "
+                                  f"pixel), got {self.relief_window_px}")
         _check_int(o, "threads", self.threads, 1, 256)
         for name, value, allowed in (("device", self.device, ("cpu", "cuda", "auto")),
                                      ("amp", self.amp, ("auto", "bf16", "off"))):

@@ -46,6 +46,7 @@ from task_outcome_ros.model import (
     INTRINSICS_FROM_CAMERA_INFO,
     build_model,
     check_normalisation,
+    input_channels,
     network_input,
 )
 from training.config import (
@@ -383,7 +384,8 @@ RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
 # Training fields saved under an older name: the same setting (a resume is not refused).
 RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
-ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0}
+ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
+                      "relief_window_px": 0}
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
@@ -453,6 +455,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         norm["intrinsics"] = INTRINSICS_FROM_CAMERA_INFO
         for arrays in (train_arrays, val_arrays):
             arrays["intrinsics"] = manifest_intrinsics(manifest, arrays["indices"])
+    if cfg.relief_window_px:
+        norm["relief_window_px"] = cfg.relief_window_px
     if len(train_arrays["indices"]) == 0:
         raise ValueError(f"{run_dir}: the train split is empty; generate more episodes")
     table = manifest_table(manifest)
@@ -462,7 +466,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     sample_weights = near_boundary_sample_weights(run_dir, train_arrays["indices"],
                                                   cfg.near_boundary_weight)
 
-    model_args = {**cfg.model_args, "num_classes": table.num_classes}
+    model_args = {**cfg.model_args, "in_channels": input_channels(norm),
+                  "num_classes": table.num_classes}
     outcome_ids = sorted(table.outcome_ids.values())
     model = build_model(model_args).to(device)
     memory_format = torch.channels_last if cfg.channels_last else torch.contiguous_format

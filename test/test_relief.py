@@ -1,0 +1,93 @@
+"""The local-relief input channel (model.local_relief): a small object reads its own height
+above whatever surface it lies on."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from task_outcome_ros.model import (
+    DEFAULT_NORMALISATION,
+    check_normalisation,
+    input_channels,
+    local_relief,
+    preprocess,
+    preprocess_batch,
+    square_max,
+    square_max_torch,
+)
+
+pytestmark = pytest.mark.unit
+
+RELIEF_NORMALISATION = {**DEFAULT_NORMALISATION, "relief_window_px": 9}
+
+
+def _table_and_floor() -> tuple[torch.Tensor, torch.Tensor]:
+    """A table top (height 0, left half) beside a room floor 0.75 m below (right half), a 3 cm
+    box on each, and an invalid strip along the bottom of the table."""
+    height = torch.zeros(1, 40, 60)
+    height[:, :, 30:] = -0.75
+    height[:, 10:13, 40:43] += 0.03   # on the floor
+    height[:, 10:13, 10:13] += 0.03   # on the table
+    valid = torch.ones_like(height, dtype=torch.bool)
+    valid[:, 34:, :30] = False
+    return height, valid
+
+
+def test_a_small_box_reads_its_height_on_the_table_and_on_the_floor_below_it() -> None:
+    height, valid = _table_and_floor()
+    relief = local_relief(height, valid, 9)
+    assert relief[0, 11, 41].item() == pytest.approx(0.03, abs=1e-6)
+    assert relief[0, 11, 11].item() == pytest.approx(0.03, abs=1e-6)
+    # The table's edge, 0.75 m above the floor beside it, is a surface wider than the window:
+    # it reads 0 up to its last pixel, and so does every surface around the boxes.
+    boxes = torch.zeros_like(valid)
+    boxes[:, 10:13, 40:43] = boxes[:, 10:13, 10:13] = True
+    assert relief[~boxes].abs().max().item() == 0.0
+    # Invalid pixels read 0, and do not pull the surface around them down.
+    assert torch.all(relief[~valid] == 0)
+
+
+def test_a_window_without_valid_pixels_and_an_empty_image_read_zero() -> None:
+    height = torch.randn(2, 20, 20)
+    valid = torch.zeros_like(height, dtype=torch.bool)
+    valid[0, :2, :2] = True
+    relief = local_relief(height, valid, 5)
+    assert torch.isfinite(relief).all() and torch.all(relief[1] == 0)
+    assert torch.all(relief[0, 10:, 10:] == 0)
+
+
+def test_opencv_and_torch_square_max_agree_including_at_the_border() -> None:
+    x = torch.randn(3, 25, 31)
+    x[0, :4] = -float("inf")
+    x[1, :, -3:] = float("inf")
+    for window in (3, 9, 15):
+        assert torch.equal(square_max(x, window), square_max_torch(x, window))
+
+
+def test_the_relief_channel_is_a_fourth_channel_and_agrees_across_preprocess_paths() -> None:
+    assert input_channels(RELIEF_NORMALISATION) == 4
+    # Seen straight down from 2 m: a floor, and a 10 cm box of 5 x 5 working pixels.
+    depth = np.full((480, 640), 2.0, np.float32)
+    depth[200:220, 300:320] = 1.9
+    x = preprocess(depth, (160, 120), RELIEF_NORMALISATION)
+    assert x.shape == (4, 120, 160)
+    scale = DEFAULT_NORMALISATION["height_scale_m"]
+    assert x[3, 51, 76] * scale == pytest.approx(0.1, abs=0.01)
+    assert np.abs(x[3, :40]).max() == 0.0           # the floor around it
+    batch = preprocess_batch(torch.from_numpy(depth), (160, 120), RELIEF_NORMALISATION)
+    np.testing.assert_allclose(batch[0].numpy(), x, atol=1e-5)
+
+
+@pytest.mark.parametrize("window", [4, 1, 65, 9.0, True, "9"])
+def test_a_bad_relief_window_is_refused(window) -> None:
+    with pytest.raises(ValueError, match="relief_window_px"):
+        check_normalisation({**DEFAULT_NORMALISATION, "relief_window_px": window})
+
+
+def test_relief_needs_the_height_channel() -> None:
+    two = {k: v for k, v in DEFAULT_NORMALISATION.items()
+           if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
+    with pytest.raises(ValueError, match="height channel"):
+        check_normalisation({**two, "relief_window_px": 9})
