@@ -91,3 +91,8 @@ def test_relief_needs_the_height_channel() -> None:
            if k not in ("height_scale_m", "focal_over_width", "floor_fit")}
     with pytest.raises(ValueError, match="height channel"):
         check_normalisation({**two, "relief_window_px": 9})
+
+
+def test_an_empty_batch_gives_an_empty_relief() -> None:
+    empty = torch.zeros(0, 12, 16)
+    assert local_relief(empty, empty > 0, 5).shape == (0, 12, 16)
