@@ -242,41 +242,44 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int) -> torc
 
     The opening (erosion, then dilation) keeps every surface a window fits on and flattens
     what is narrower, so what remains is each small object's or wall's height above the
-    surface around it, whichever surface that is. Invalid pixels neither lower the erosion
-    nor raise the dilation; a window with no valid pixel leaves its pixel's relief 0. Pixels
-    beyond the frame are ignored like invalid ones, so an object that fills the in-frame part
-    of a window at the border (at the left edge: ``window // 2 + 1`` columns by ``window``
-    rows; likewise beside an invalid region) reads as a surface there: the slivers of
-    objects cut by the frame are narrower than that and keep their height. Inputs carry no
-    gradient."""
+    surface around it, whichever surface that is. Beyond the frame there is no support (the
+    erosion sees -inf there), so an object cut by the frame reads its height like one in
+    full view, while a surface reaching the frame still reads 0 up to its last pixel, carried
+    in by the dilation from half a window inside. Invalid pixels neither lower the erosion nor
+    raise the dilation; a window with no valid pixel leaves its pixel's relief 0. Inputs
+    carry no gradient."""
     height = height.float()
     inf = torch.tensor(float("inf"), device=height.device)
-    eroded = -square_max(-torch.where(valid, height, inf), window)
-    eroded = torch.where(torch.isinf(eroded), -inf, eroded)  # no valid pixel: no support
+    # max of -height with +inf beyond the frame = min of height with -inf beyond it
+    eroded = -square_max(-torch.where(valid, height, inf), window, beyond=float("inf"))
+    eroded = torch.where(torch.isinf(eroded), -inf, eroded)  # no support: never wins below
     relief = height - square_max(eroded, window)
     return torch.where(valid & torch.isfinite(relief), relief.clamp_min(0.0),
                        torch.zeros_like(height))
 
 
-def square_max(x: torch.Tensor, window: int) -> torch.Tensor:
+def square_max(x: torch.Tensor, window: int, beyond: float = -float("inf")) -> torch.Tensor:
     """(N, h, w) float32 -> the max over the centred ``window`` x ``window`` square around
-    each pixel; beyond the border counts as -inf (it never wins). On the CPU OpenCV's dilation
-    does it (0.03 ms at 160 x 120, 20x faster than torch's stride-1 max-pool); elsewhere
+    each pixel, pixels beyond the frame reading ``beyond``. On the CPU OpenCV's dilation does
+    it (0.03 ms at 160 x 120, 20x faster than torch's stride-1 max-pool); elsewhere
     ``square_max_torch``, which gives the same values."""
     if x.device.type != "cpu" or len(x) == 0:
-        return square_max_torch(x, window)
+        return square_max_torch(x, window, beyond)
     kernel = np.ones((window, window), np.uint8)
     planes = x.detach().contiguous().numpy()
     return torch.from_numpy(np.stack([
-        cv2.dilate(plane, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+        cv2.dilate(plane, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=beyond)
         for plane in planes]).reshape(planes.shape))
 
 
-def square_max_torch(x: torch.Tensor, window: int) -> torch.Tensor:
-    """``square_max`` as two separable max-pools (a row pass, then a column pass)."""
+def square_max_torch(x: torch.Tensor, window: int,
+                     beyond: float = -float("inf")) -> torch.Tensor:
+    """``square_max`` as two separable max-pools (a row pass, then a column pass) over the
+    image padded with ``beyond``."""
     pad = window // 2
-    rows = F.max_pool2d(x[:, None], (1, window), stride=1, padding=(0, pad))
-    return F.max_pool2d(rows, (window, 1), stride=1, padding=(pad, 0))[:, 0]
+    padded = F.pad(x[:, None], (pad, pad, pad, pad), value=beyond)
+    rows = F.max_pool2d(padded, (1, window), stride=1)
+    return F.max_pool2d(rows, (window, 1), stride=1)[:, 0]
 
 
 def _conv_block(c_in: int, c_out: int, n_convs: int = 2) -> nn.Sequential:

@@ -63,7 +63,20 @@ def test_opencv_and_torch_square_max_agree_including_at_the_border() -> None:
     x[0, :4] = -float("inf")
     x[1, :, -3:] = float("inf")
     for window in (3, 9, 15):
-        assert torch.equal(square_max(x, window), square_max_torch(x, window))
+        for beyond in (-float("inf"), float("inf")):
+            assert torch.equal(square_max(x, window, beyond),
+                               square_max_torch(x, window, beyond))
+
+
+def test_an_object_cut_by_the_frame_reads_its_height_and_a_surface_at_the_edge_reads_zero():
+    height = torch.full((1, 30, 40), -0.75)
+    height[:, :, 30:] = 0.0                    # a table top reaching the right edge
+    # A box cut by the left edge, 6 x 20 pixels in view: it fills every in-frame window of
+    # its border pixels, which would make it a surface if the frame's edge were support.
+    height[:, 5:25, :6] += 0.03
+    relief = local_relief(height, torch.ones_like(height, dtype=torch.bool), 9)
+    assert torch.allclose(relief[:, 5:25, :6], torch.tensor(0.03))
+    assert relief[:, :, 30:].abs().max().item() == 0.0
 
 
 def test_the_relief_channel_is_a_fourth_channel_and_agrees_across_preprocess_paths() -> None:
