@@ -77,11 +77,11 @@ def test_train_config_validation_names_the_field():
         TrainConfig(max_width=4).validate()
     with pytest.raises(ConfigError, match="train.near_boundary_weight"):
         TrainConfig(near_boundary_weight=0.5).validate()
-    with pytest.raises(ConfigError, match="train.relief_window_px must be odd"):
-        TrainConfig(relief_window_px=8).validate()
-    with pytest.raises(ConfigError, match="train.relief_window_px"):
-        TrainConfig(relief_window_px=65).validate()
-    assert TrainConfig(relief_window_px=15).validate().relief_window_px == 15
+    for bad in (8, 1, 65, 15.0, True):
+        with pytest.raises(ConfigError, match="train.relief_window_px"):
+            TrainConfig(relief_window_px=bad).validate()
+    for good in (0, 3, 15):
+        assert TrainConfig(relief_window_px=good).validate().relief_window_px == good
     with pytest.raises(ConfigError, match="train.full_size_head = 8 needs space_to_depth 2"):
         TrainConfig(full_size_head=8).validate()
     with pytest.raises(ConfigError, match="train.full_size_head"):
@@ -284,6 +284,12 @@ def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
     assert resume_differences(unbalanced, cfg, "bf16", "bf16") == []
     assert resume_differences(unbalanced, dataclasses.replace(cfg, object_balance_pixels=64),
                               "bf16", "bf16") == ["object_balance_pixels: 0 -> 64"]
+    # Saved before relief_window_px existed: three channels, i.e. 0.
+    flat = {k: v for k, v in saved.items() if k != "relief_window_px"}
+    assert resume_differences(flat, dataclasses.replace(cfg, relief_window_px=0),
+                              "bf16", "bf16") == []
+    assert resume_differences(flat, dataclasses.replace(cfg, relief_window_px=15),
+                              "bf16", "bf16") == ["relief_window_px: 0 -> 15"]
     assert resume_differences(saved, cfg, "bf16", "fp32") == ["precision: bf16 -> fp32"]
     old = {k: v for k, v in saved.items() if k != "lovasz_weight"}     # predates the field
     assert resume_differences(old, cfg, "bf16", "bf16") == [
