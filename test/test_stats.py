@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -95,6 +96,24 @@ def test_compare_refuses_different_images_or_kinds():
         compare_reports("eval", _eval("runs/x", [], 300), "eval", _eval("runs/x", [], 200))
     with pytest.raises(ValueError, match="cannot compare"):
         compare_reports("eval", _eval("runs/x", []), "robustness", _robustness(None))
+
+
+def test_two_runs_with_the_same_manifest_hold_the_same_images(tmp_path, monkeypatch):
+    """A second recipe trained on a linked (or copied) dataset is compared on its images."""
+    monkeypatch.chdir(tmp_path)
+    for run, manifest in (("first", '{"images": [1, 2]}'), ("linked", None),
+                          ("copy", '{"images": [1, 2]}'), ("other", '{"images": [3]}')):
+        Path(run).mkdir()
+        if manifest is None:
+            (Path(run) / "manifest.json").symlink_to(tmp_path / "first" / "manifest.json")
+        else:
+            (Path(run) / "manifest.json").write_text(manifest)
+    for same in ("linked", "copy"):
+        rows = compare_reports("eval", _eval("first", [1, 2]), "eval", _eval(same, [2]))
+        assert rows[0]["only_a_wrong"] == [1]
+    for different in ("other", "missing"):
+        with pytest.raises(ValueError, match="not the same images"):
+            compare_reports("eval", _eval("first", []), "eval", _eval(different, []))
 
 
 def test_training_compare_reads_result_folders(tmp_path, capsys):

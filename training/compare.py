@@ -2,10 +2,11 @@
 
 A and B are two ``evaluate`` results (eval.json, or the folder holding it) on the same data
 and split, or two ``robustness`` results (robustness.json, or its folder) on the same data
-and scenes. For each set of images it prints both all-correct rates with their 95 %
-intervals, the images only one model got wrong, and the exact McNemar p-value
-(training/stats.py). Results written before the suite recorded its mistakes per point can
-still be compared by rate, without the paired test.
+and scenes; two run folders whose manifests are identical hold the same data. For each set
+of images it prints both all-correct rates with their 95 % intervals, the images only one
+model got wrong, and the exact McNemar p-value (training/stats.py). Results written before
+the suite recorded its mistakes per point can still be compared by rate, without the paired
+test.
 """
 
 from __future__ import annotations
@@ -37,9 +38,21 @@ def load_result(path: Path) -> tuple[str, dict]:
 
 def _same(a: dict, b: dict, keys: tuple[str, ...], what: str) -> None:
     for key in keys:
-        if a.get(key) != b.get(key):
+        if a.get(key) != b.get(key) and not (key == "data"
+                                             and same_dataset(a.get(key), b.get(key))):
             raise ValueError(f"not the same images: {what} {key} {a.get(key)!r} vs "
                              f"{b.get(key)!r}; compare results made on the same data")
+
+
+def same_dataset(a: str | None, b: str | None) -> bool:
+    """Two run folders hold the same images when their manifests (every image's files and
+    seeds) are byte for byte the same: a run that links another's dataset to train a second
+    recipe on it, or a copy. Paths are read as recorded, relative to where this runs."""
+    if not (a and b):
+        return False
+    manifests = [Path(a) / "manifest.json", Path(b) / "manifest.json"]
+    return (all(m.is_file() for m in manifests)
+            and manifests[0].read_bytes() == manifests[1].read_bytes())
 
 
 def compare_reports(kind_a: str, a: dict, kind_b: str, b: dict) -> list[dict]:
