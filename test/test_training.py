@@ -305,17 +305,17 @@ def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
 def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_path):
     """The defaults are channels-last and, on a CPU with native bf16, bf16 autocast; the plain
     fp32 / NCHW path (every other CPU, or by choice) must keep working and say what it used."""
-    import shutil
-
     run = tmp_path / "run"
-    shutil.copytree(small_run, run, ignore=shutil.ignore_patterns("train", "eval"))
     # The object-balanced cross-entropy and the relief channel ride along: its weights and
-    # its fourth input channel go through the real loop.
-    r = _cli("train", "--out", str(run), "--epochs", "1", "--batch-size", "8", "--device",
-             "cpu", "--amp", "off", "--no-channels-last", "--object-balance-pixels", "64",
-             "--relief-window-px", "5")
+    # its fourth input channel go through the real loop; the run trains on the small run's
+    # dataset, linked (--dataset-from), as a second recipe on the same images would.
+    r = _cli("train", "--out", str(run), "--dataset-from", str(small_run), "--epochs", "1",
+             "--batch-size", "8", "--device", "cpu", "--amp", "off", "--no-channels-last",
+             "--object-balance-pixels", "64", "--relief-window-px", "5")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "train: cpu, fp32, contiguous activations" in r.stdout
+    assert f"train: on the dataset of {small_run}" in r.stdout
+    assert (run / "manifest.json").resolve() == (small_run / "manifest.json").resolve()
     from task_outcome_ros import checkpoint
 
     ckpt = checkpoint.load(run / "train" / "best.pt")
@@ -326,6 +326,25 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
     assert ckpt.extra["precision"] == "fp32"
     x = torch.zeros(1, ckpt.model_args["in_channels"], 120, 160)
     assert torch.isfinite(ckpt.model(x)).all()
+
+
+def test_a_run_links_another_runs_dataset_once_and_never_mixes_two(tmp_path):
+    from training.dataset import link_dataset
+
+    source, run = tmp_path / "source", tmp_path / "run"
+    (source / "images").mkdir(parents=True)
+    for name in ("manifest.json", "config.json"):
+        (source / name).write_text("{}")
+    assert link_dataset(source, run) == ["config.json", "images", "manifest.json"]
+    assert (run / "images").is_symlink() and (run / "images").resolve() == source / "images"
+    assert link_dataset(source, run) == ["config.json", "images", "manifest.json"]  # again
+    other = tmp_path / "other"
+    (other / "config.json").parent.mkdir()
+    (other / "config.json").write_text("{}")
+    with pytest.raises(ValueError, match="not a link to"):
+        link_dataset(source, other)
+    with pytest.raises(FileNotFoundError, match="no manifest.json"):
+        link_dataset(tmp_path / "nothing", tmp_path / "run2")
 
 
 def test_the_schedule_is_fitted_to_the_budget_after_the_first_epoch(small_run, tmp_path,

@@ -207,6 +207,12 @@ def cmd_train(args) -> None:
     from training.train import train
 
     cfg = resolve_train_config(args)
+    if args.dataset_from is not None:
+        from training.dataset import link_dataset
+
+        linked = link_dataset(args.dataset_from, Path(args.out))
+        print(f"train: on the dataset of {args.dataset_from} ({', '.join(linked)} linked "
+              f"into {args.out})")
     best = train(args.out, cfg, resume=not args.no_resume)
     print(f"train: best checkpoint {best}")
     if args.ship:
@@ -407,6 +413,10 @@ def build_parser() -> argparse.ArgumentParser:
         add_dataset_args(p)
         if name in ("train", "run"):
             add_train_args(p)
+        if name == "train":
+            p.add_argument("--dataset-from", type=Path, default=None, metavar="RUN",
+                           help="train in --out on RUN's dataset, linked rather than copied "
+                                "(a second recipe on the same images; `compare` pairs them)")
         if name in ("evaluate", "run"):
             add_eval_args(p)
     return parser

@@ -178,3 +178,34 @@ def save_run_config(run_dir: Path, cfg: DatasetConfig) -> None:
                 f"{path} holds a different config than requested; use another --out folder "
                 "or the same options to resume")
     save_json(path, data)
+
+
+# What the dataset stages write into a run folder (simulate, discover, render, the training
+# cache), everything a training run and its evaluation read; not train/ or eval*/ results.
+DATASET_ENTRIES = ("config.json", "simulate", "discovery.json", "outcomes.json", "render",
+                   "images", "manifest.json", "cache", "timings.json")
+
+
+def link_dataset(source: Path, run_dir: Path) -> list[str]:
+    """Make ``run_dir`` train on ``source``'s dataset: symlink each of its
+    ``DATASET_ENTRIES`` into ``run_dir`` (nothing is copied; a cache built later for another
+    working size lands in the shared cache). Running it again is a no-op; an entry
+    ``run_dir`` already holds that is not the same link is refused, so two datasets never
+    mix. Returns the names linked."""
+    source, run_dir = Path(source).resolve(), Path(run_dir)
+    if not (source / "manifest.json").is_file():
+        raise FileNotFoundError(f"{source}: no manifest.json; make its dataset first "
+                                f"(python -m training dataset --out {source})")
+    present = [name for name in DATASET_ENTRIES if (source / name).exists()]
+    for name in present:
+        link = run_dir / name
+        if (link.exists() or link.is_symlink()) and not (
+                link.is_symlink() and link.resolve() == (source / name).resolve()):
+            raise ValueError(f"{link} exists and is not a link to {source / name}: use a new "
+                             f"--out to train on {source}'s dataset")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    for name in present:
+        target = source / name
+        if not (run_dir / name).is_symlink():
+            (run_dir / name).symlink_to(target, target_is_directory=target.is_dir())
+    return present
