@@ -188,8 +188,9 @@ DATASET_ENTRIES = ("config.json", "simulate", "discovery.json", "outcomes.json",
 
 def link_dataset(source: Path, run_dir: Path) -> list[str]:
     """Make ``run_dir`` train on ``source``'s dataset: symlink each of its
-    ``DATASET_ENTRIES`` into ``run_dir`` (nothing is copied; a cache built later for another
-    working size lands in the shared cache). Running it again is a no-op; an entry
+    ``DATASET_ENTRIES`` into ``run_dir`` (nothing is copied; when the source has a cache, one
+    built later for another working size lands in that shared folder). Running it again is a
+    no-op; an entry
     ``run_dir`` already holds that is not the same link is refused, so two datasets never
     mix. Returns the names linked."""
     source, run_dir = Path(source).resolve(), Path(run_dir)
