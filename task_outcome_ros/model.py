@@ -105,15 +105,23 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
                              f"in metres with a height channel, got {norm!r}")
         out["support_above_floor"] = [float(band[0]), float(band[1])]
     if "relief_window_px" in norm:
-        window, (lo, hi) = norm["relief_window_px"], RELIEF_WINDOW_RANGE
-        if ("height_scale_m" not in out or type(window) is not int or not lo <= window <= hi
-                or window % 2 == 0):
-            raise ValueError(f"normalisation 'relief_window_px' must be an odd int in "
-                             f"[{lo}, {hi}] with a height channel, got {norm!r}")
-        out["relief_window_px"] = window
+        if "height_scale_m" not in out:
+            raise ValueError(f"normalisation 'relief_window_px' needs a height channel, got "
+                             f"{norm!r}")
+        out["relief_window_px"] = check_relief_window(norm["relief_window_px"])
     if not all(out.get(k, 1.0) > 0 for k in ("scale_m", "clip", *_HEIGHT_FIELDS)):
         raise ValueError(f"normalisation needs positive scales and clip, got {norm!r}")
     return out
+
+
+def check_relief_window(window: Any) -> int:
+    """The relief channel's window (``local_relief``): an odd int in ``RELIEF_WINDOW_RANGE``,
+    so that it is centred on its pixel."""
+    lo, hi = RELIEF_WINDOW_RANGE
+    if type(window) is not int or not lo <= window <= hi or window % 2 == 0:
+        raise ValueError(f"relief_window_px must be an odd int in [{lo}, {hi}] (a window "
+                         f"centred on its pixel), got {window!r}")
+    return window
 
 
 def input_channels(normalisation: dict[str, Any]) -> int:

@@ -773,14 +773,13 @@ class TrainConfig:
         _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
         _check_range(o, "lovasz_weight", self.lovasz_weight, 0.0, 100.0)
         _check_int(o, "object_balance_pixels", self.object_balance_pixels, 0, 1_000_000)
-        from task_outcome_ros.model import RELIEF_WINDOW_RANGE
+        if self.relief_window_px != 0 or type(self.relief_window_px) is not int:  # 0: off
+            from task_outcome_ros.model import check_relief_window
 
-        lo, hi = RELIEF_WINDOW_RANGE
-        _check_int(o, "relief_window_px", self.relief_window_px, 0, hi)
-        if self.relief_window_px and (self.relief_window_px < lo
-                                      or self.relief_window_px % 2 == 0):
-            raise ConfigError(f"{o}.relief_window_px must be 0 (off) or odd in [{lo}, {hi}] "
-                              f"(a window centred on its pixel), got {self.relief_window_px}")
+            try:
+                check_relief_window(self.relief_window_px)
+            except ValueError as exc:
+                raise ConfigError(f"{o}.{exc} (or 0: off)") from None
         _check_int(o, "threads", self.threads, 1, 256)
         for name, value, allowed in (("device", self.device, ("cpu", "cuda", "auto")),
                                      ("amp", self.amp, ("auto", "bf16", "off"))):
