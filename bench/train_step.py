@@ -108,7 +108,7 @@ def main() -> None:
         net, optim, average = nets[config]
         t0 = time.perf_counter()
         idx = np.sort(torch.randint(0, n, (cfg.batch_size,), generator=gen).numpy())
-        depth, valid, labels, _ = gather_batch(arrays, idx, gen)
+        depth, valid, labels, _, _ = gather_batch(arrays, idx, gen)
         t1 = time.perf_counter()
         x = network_input(depth, valid, DEFAULT_NORMALISATION)
         if config[1]:

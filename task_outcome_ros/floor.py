@@ -207,13 +207,17 @@ def height_above_floor(depth: torch.Tensor, valid: torch.Tensor,
                        intrinsics: torch.Tensor | None = None,
                        version: int = FLOOR_FIT,
                        support_above_floor: tuple[float, float] | None = None,
-                       tracker: FloorTracker | None = None) -> torch.Tensor:
+                       tracker: FloorTracker | None = None,
+                       nearest: torch.Tensor | None = None,
+                       ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """(N, h, w) depth (metres) and validity (bool) -> (N, h, w) height in metres; 0 where
     invalid, and everywhere in an image with fewer than three valid pixels. ``intrinsics``:
     see ``backproject``; ``version``: see ``fit_floor``; ``support_above_floor``: the (min,
     max) height of a table top above the room floor, to measure from the table when both are
     in view (module docstring). ``tracker`` (one image only): reuse the previous frame's
-    plane while it still fits (``FloorTracker``)."""
+    plane while it still fits (``FloorTracker``). ``nearest``: a second (N, h, w) depth of
+    the same pixels (``model.nearest_depth``), measured from the same plane; then the answer
+    is (heights, heights of ``nearest``)."""
     points = backproject(depth.float(), focal_over_width, intrinsics)
     if tracker is None:
         normal, offset = support_plane(points, valid, version, support_above_floor)
@@ -223,7 +227,11 @@ def height_above_floor(depth: torch.Tensor, valid: torch.Tensor,
                None if support_above_floor is None else tuple(support_above_floor))
         normal, offset = tracker.plane(points, valid, key, version, support_above_floor)
     height = _distances(points, normal, offset)
-    return torch.where(valid, height, torch.zeros_like(height))
+    height = torch.where(valid, height, torch.zeros_like(height))
+    if nearest is None:
+        return height
+    near = _distances(backproject(nearest.float(), focal_over_width, intrinsics), normal, offset)
+    return height, torch.where(valid, near, torch.zeros_like(near))
 
 
 class FloorTracker:

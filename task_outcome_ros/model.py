@@ -27,6 +27,15 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    both: a small object stands out the same on any surface, by construction. Surfaces wider
    than the window (a table top, a tote's floor) read 0 up to their edges; narrow ones (walls)
    read their height.
+4. nearest-point height: the height of the nearest valid point under each working pixel
+   (``nearest_depth``: the minimum depth of its block of input pixels), measured from the same
+   support plane as channel 2, / ``height_scale_m``, clipped like it. Present when the dict
+   has ``"nearest_height": True`` (with a height channel). Why: the area resize averages a
+   block's depths, so a tote's 1 cm rim, about one working pixel wide, reads somewhere
+   between its top and the floor beside it, and so does the top edge of an object leaning
+   on it; whether the object's top rises above the rim (stuck) or not (inside) is a matter
+   of millimetres. The nearest point of a block seen from above is its highest, which keeps
+   the rim's and the object's tops at their true height in every working pixel they touch.
 
 The channels are computed in one place, ``network_input`` (torch), after the one resize,
 ``resize_depth`` (numpy, NaN-aware area average). ``preprocess`` (one numpy image) and
@@ -63,6 +72,7 @@ DEFAULT_NORMALISATION: dict[str, Any] = {
     "height_scale_m": 0.25, "focal_over_width": FOCAL_OVER_WIDTH,
     "floor_fit": FLOOR_FIT}
 _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
+NEAREST_HEIGHT = "nearest_height"   # normalisation key of channel 4 (value True)
 RELIEF_WINDOW_RANGE = (3, 63)  # odd working pixels: a window centred on its pixel
 _FLOOR_FITS = FLOOR_FITS
 # normalisation["intrinsics"]: where the height channel's camera comes from in training.
@@ -109,6 +119,11 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
             raise ValueError(f"normalisation 'relief_window_px' needs a height channel, got "
                              f"{norm!r}")
         out["relief_window_px"] = check_relief_window(norm["relief_window_px"])
+    if NEAREST_HEIGHT in norm:
+        if norm[NEAREST_HEIGHT] is not True or "height_scale_m" not in out:
+            raise ValueError(f"normalisation {NEAREST_HEIGHT!r} must be true, with a height "
+                             f"channel, got {norm!r}")
+        out[NEAREST_HEIGHT] = True
     if not all(out.get(k, 1.0) > 0 for k in ("scale_m", "clip", *_HEIGHT_FIELDS)):
         raise ValueError(f"normalisation needs positive scales and clip, got {norm!r}")
     return out
@@ -125,9 +140,10 @@ def check_relief_window(window: Any) -> int:
 
 
 def input_channels(normalisation: dict[str, Any]) -> int:
-    """How many channels ``network_input`` makes with this normalisation (2, 3 or 4)."""
+    """How many channels ``network_input`` makes with this normalisation (2 to 5)."""
     norm = check_normalisation(normalisation)
-    return 2 + ("height_scale_m" in norm) + ("relief_window_px" in norm)
+    return (2 + ("height_scale_m" in norm) + ("relief_window_px" in norm)
+            + (NEAREST_HEIGHT in norm))
 
 
 def check_input_size(size: Any) -> tuple[int, int]:
@@ -179,10 +195,16 @@ def preprocess_sanitized(depth_m: np.ndarray, input_size: tuple[int, int],
                          floor_tracker: FloorTracker | None = None) -> np.ndarray:
     """``preprocess`` for a depth image already through ``depth.sanitize_depth``.
     ``floor_tracker``: keep the support plane across a static camera's frames (floor.py)."""
-    depth, frac = resize_depth(depth_m, check_input_size(input_size))
+    size = check_input_size(input_size)
+    norm = normalisation or DEFAULT_NORMALISATION
+    depth, frac = resize_depth(depth_m, size)
     k = None if intrinsics is None else torch.as_tensor(intrinsics, dtype=torch.float32)[None]
+    nearest = None
+    if NEAREST_HEIGHT in norm:
+        full = torch.from_numpy(depth_m)[None]
+        nearest = nearest_depth(full, torch.isfinite(full), size)
     x = network_input(torch.from_numpy(depth)[None], torch.from_numpy(frac)[None],
-                      normalisation or DEFAULT_NORMALISATION, k, floor_tracker)
+                      norm, k, floor_tracker, nearest)
     return x[0].numpy()
 
 
@@ -211,17 +233,38 @@ def preprocess_batch(depth_m: torch.Tensor, input_size: tuple[int, int],
     frac = mask.clamp(0.0, 1.0)
     has = frac > 1e-6
     depth = torch.where(has, filled / frac.clamp_min(1e-6), torch.zeros_like(filled))
-    return network_input(depth[:, 0], frac[:, 0], norm, intrinsics)
+    nearest = nearest_depth(d, valid, (w, h)) if NEAREST_HEIGHT in norm else None
+    return network_input(depth[:, 0], frac[:, 0], norm, intrinsics, nearest=nearest)
+
+
+def nearest_depth(depth: torch.Tensor, valid: torch.Tensor, input_size: tuple[int, int],
+                  ) -> torch.Tensor:
+    """(N, H, W) depth (metres) and validity (bool) -> (N, h, w): the nearest valid depth
+    under each working pixel, 0 where none is valid (channel 4 of ``network_input``).
+
+    The blocks are adaptive max-pooling's (exact blocks for an integer factor such as 640 x 480
+    -> 160 x 120, overlapping ones otherwise), one torch op for the node, the datasets and
+    training alike."""
+    w, h = check_input_size(input_size)
+    d = depth.float()
+    neg = torch.where(valid, -d, torch.full_like(d, -float("inf")))[:, None]
+    if tuple(d.shape[-2:]) != (h, w):
+        neg = F.adaptive_max_pool2d(neg, (h, w))
+    near = -neg[:, 0]
+    return torch.where(torch.isfinite(near), near, torch.zeros_like(near))
 
 
 def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
                   normalisation: dict[str, Any] | None = None,
                   intrinsics: torch.Tensor | None = None,
-                  floor_tracker: FloorTracker | None = None) -> torch.Tensor:
+                  floor_tracker: FloorTracker | None = None,
+                  nearest: torch.Tensor | None = None) -> torch.Tensor:
     """(N, h, w) working-size depth (metres, as ``resize_depth`` gives) and valid fraction ->
-    (N, C, h, w) network input (C = 2, 3 with heights, 4 with their local relief). Training
-    uses this on its cached ``resize_depth`` output, after augmentation, so heights follow the
-    augmented depth.
+    (N, C, h, w) network input (C = 2, 3 with heights, +1 with their local relief, +1 with
+    the nearest-point heights). Training uses this on its cached ``resize_depth`` output,
+    after augmentation, so heights follow the augmented depth. ``nearest``: (N, h, w)
+    ``nearest_depth`` of the same images, required when the normalisation has
+    ``nearest_height``.
 
     ``intrinsics`` (N, 4), ``camera.Intrinsics.normalised`` per image, are used for the heights
     only when the normalisation says the network was trained with them; else the nominal
@@ -234,13 +277,24 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
     channels = [z, torch.where(has, valid_fraction, torch.zeros_like(z))]
     if "height_scale_m" in norm:
         use = intrinsics if norm.get("intrinsics") == INTRINSICS_FROM_CAMERA_INFO else None
+        wants_nearest = NEAREST_HEIGHT in norm
+        if wants_nearest and (nearest is None or nearest.shape != depth.shape):
+            raise ValueError(f"this normalisation has {NEAREST_HEIGHT!r}: network_input needs "
+                             f"the nearest-point depth (model.nearest_depth) of shape "
+                             f"{tuple(depth.shape)}, got "
+                             f"{None if nearest is None else tuple(nearest.shape)}")
         height = height_above_floor(depth, has, norm["focal_over_width"], use,
                                     norm["floor_fit"], norm.get("support_above_floor"),
-                                    floor_tracker)
-        channels.append((height / norm["height_scale_m"]).clamp(-norm["clip"], norm["clip"]))
+                                    floor_tracker, nearest if wants_nearest else None)
+        if wants_nearest:
+            height, nearest_height = height
+        clip = norm["clip"]
+        channels.append((height / norm["height_scale_m"]).clamp(-clip, clip))
         if "relief_window_px" in norm:
             relief = local_relief(height, has, norm["relief_window_px"])
-            channels.append((relief / norm["height_scale_m"]).clamp(0.0, norm["clip"]))
+            channels.append((relief / norm["height_scale_m"]).clamp(0.0, clip))
+        if wants_nearest:
+            channels.append((nearest_height / norm["height_scale_m"]).clamp(-clip, clip))
     return torch.stack(channels, dim=1)
 
 

@@ -73,6 +73,8 @@ def test_train_config_validation_names_the_field():
         TrainConfig(channels_last=1).validate()
     with pytest.raises(ConfigError, match="train.camera_intrinsics"):
         TrainConfig(camera_intrinsics="yes").validate()
+    with pytest.raises(ConfigError, match="train.nearest_height"):
+        TrainConfig(nearest_height=1).validate()
     with pytest.raises(ConfigError, match="train.max_width"):
         TrainConfig(max_width=4).validate()
     with pytest.raises(ConfigError, match="train.near_boundary_weight"):
@@ -110,7 +112,7 @@ def test_augmentation_keeps_labels_and_redraws_noise_at_the_sensors_level():
     depth = torch.full((64, 120, 160), 2.0)
     labels = torch.zeros((64, 120, 160), dtype=torch.long)
     labels[:, 40:80, 60:100] = SUCCESS
-    out, valid, out_labels, _ = augment(depth.clone(), torch.ones_like(depth), labels, gen)
+    out, valid, out_labels, _, _ = augment(depth.clone(), torch.ones_like(depth), labels, gen)
     # Labels only move with the image (mirror, shift): same object area, nothing relabelled.
     assert set(out_labels.unique().tolist()) <= {0, SUCCESS, 255}
     assert ((out_labels == SUCCESS).sum((1, 2)) == 40 * 40).all()
@@ -121,12 +123,31 @@ def test_augmentation_keeps_labels_and_redraws_noise_at_the_sensors_level():
     assert sd.max() <= 1.1 * ceiling and sd.min() < 0.3 * ceiling and sd.mean() > 0.3 * ceiling
 
 
+def test_augmentation_moves_the_nearest_depths_with_the_image_and_leaves_the_rest_alone():
+    from training.train import augment
+
+    depth = torch.rand(6, 30, 40) + 1.0
+    labels = torch.randint(0, 4, (6, 30, 40))
+    args = (torch.ones_like(depth), labels)
+    plain = augment(depth.clone(), *args, torch.Generator().manual_seed(5), noise_level=0.0)
+    both = augment(depth.clone(), *args, torch.Generator().manual_seed(5), noise_level=0.0,
+                   nearest=depth.clone())
+    # Without noise the nearest depths are the depths, moved and scaled the same way; and the
+    # other outputs are those of a run without them (the random stream is unchanged).
+    assert plain.nearest is None and torch.equal(both.nearest, both.depth)
+    for got, want in zip(both[:3], plain[:3]):
+        assert torch.equal(got, want)
+    noisy = augment(depth.clone(), *args, torch.Generator().manual_seed(5), noise_level=1.0,
+                    nearest=depth.clone())
+    assert not torch.equal(noisy.nearest, noisy.depth)   # noise drawn on its own
+
+
 def test_augmentation_noise_level_zero_adds_no_noise():
     from training.train import augment
 
     depth = torch.full((8, 120, 160), 2.0)
-    out, _, _, _ = augment(depth.clone(), torch.ones_like(depth), torch.zeros_like(depth).long(),
-                           torch.Generator().manual_seed(0), noise_level=0.0)
+    out = augment(depth.clone(), torch.ones_like(depth), torch.zeros_like(depth).long(),
+                  torch.Generator().manual_seed(0), noise_level=0.0).depth
     inner = out[:, 10:-10, 10:-10]
     # Only the whole-scene scale is left: every image flat, within +-4 % of 2 m.
     assert torch.allclose(inner, inner[:, :1, :1].expand_as(inner))
@@ -148,10 +169,10 @@ def test_augmentation_moves_the_intrinsics_with_the_image():
     n = 16
     depth = torch.from_numpy(np.stack([one] * n))
     k = torch.from_numpy(np.stack([camera.normalised()] * n))
-    out, valid, moved_box, k_out = augment(depth.clone(), torch.ones_like(depth),
-                                           torch.from_numpy(np.stack([box] * n)),
-                                           torch.Generator().manual_seed(3), noise_level=0.0,
-                                           intrinsics=k)
+    out, valid, moved_box, k_out, _ = augment(depth.clone(), torch.ones_like(depth),
+                                              torch.from_numpy(np.stack([box] * n)),
+                                              torch.Generator().manual_seed(3),
+                                              noise_level=0.0, intrinsics=k)
     truth = torch.where(moved_box == 1, 0.25, 0.0)
     seen = (valid > 0) & (moved_box != 255)
 
@@ -290,6 +311,11 @@ def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
                               "bf16", "bf16") == []
     assert resume_differences(flat, dataclasses.replace(cfg, relief_window_px=15),
                               "bf16", "bf16") == ["relief_window_px: 0 -> 15"]
+    # Saved before nearest_height existed: no such channel, i.e. False.
+    far = {k: v for k, v in saved.items() if k != "nearest_height"}
+    assert resume_differences(far, cfg, "bf16", "bf16") == []
+    assert resume_differences(far, dataclasses.replace(cfg, nearest_height=True),
+                              "bf16", "bf16") == ["nearest_height: False -> True"]
     assert resume_differences(saved, cfg, "bf16", "fp32") == ["precision: bf16 -> fp32"]
     old = {k: v for k, v in saved.items() if k != "lovasz_weight"}     # predates the field
     assert resume_differences(old, cfg, "bf16", "bf16") == [
@@ -306,12 +332,13 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
     """The defaults are channels-last and, on a CPU with native bf16, bf16 autocast; the plain
     fp32 / NCHW path (every other CPU, or by choice) must keep working and say what it used."""
     run = tmp_path / "run"
-    # The object-balanced cross-entropy and the relief channel ride along: its weights and
-    # its fourth input channel go through the real loop; the run trains on the small run's
-    # dataset, linked (--dataset-from), as a second recipe on the same images would.
+    # The object-balanced cross-entropy and the relief and nearest-point channels ride along:
+    # its weights and the extra input channels go through the real loop (and the nearest
+    # depths through their own cache); the run trains on the small run's dataset, linked
+    # (--dataset-from), as a second recipe on the same images would.
     r = _cli("train", "--out", str(run), "--dataset-from", str(small_run), "--epochs", "1",
              "--batch-size", "8", "--device", "cpu", "--amp", "off", "--no-channels-last",
-             "--object-balance-pixels", "64", "--relief-window-px", "5")
+             "--object-balance-pixels", "64", "--relief-window-px", "5", "--nearest-height")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "train: cpu, fp32, contiguous activations" in r.stdout
     assert f"train: on the dataset of {small_run}" in r.stdout
@@ -320,12 +347,21 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
 
     ckpt = checkpoint.load(run / "train" / "best.pt")
     assert ckpt.train_config["train"]["object_balance_pixels"] == 64
-    assert ckpt.normalisation["relief_window_px"] == 5 and ckpt.model_args["in_channels"] == 4
+    assert ckpt.normalisation["relief_window_px"] == 5 and ckpt.normalisation["nearest_height"]
+    assert ckpt.model_args["in_channels"] == 5
+    assert (small_run / "cache" / "val_160x120_nearest.npz").is_file()
     assert ckpt.train_config["train"]["channels_last"] is False
     assert ckpt.train_config["train"]["amp"] == "off"
     assert ckpt.extra["precision"] == "fp32"
     x = torch.zeros(1, ckpt.model_args["in_channels"], 120, 160)
     assert torch.isfinite(ckpt.model(x)).all()
+    # The node's path makes the extra channels from a full-size frame by itself.
+    from task_outcome_ros.inference import OutcomeSegmenter
+    from training.render import read_pair
+
+    depth, labels = read_pair(small_run, 0)
+    result = OutcomeSegmenter(run / "train" / "best.pt", backend="torch").segment(depth)
+    assert result.labels.shape == labels.shape
 
 
 def test_a_run_links_another_runs_dataset_once_and_never_mixes_two(tmp_path):

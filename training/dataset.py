@@ -136,10 +136,60 @@ def build_cache(run_dir: Path, split: str, size: tuple[int, int], workers: int =
     return path
 
 
-def load_cache(run_dir: Path, split: str, size: tuple[int, int], workers: int = 2) -> dict:
-    """{'indices', 'depth' (N,h,w) m, 'valid' (N,h,w) fraction, 'labels' (N,h,w) uint8}."""
+def _nearest_one(args: tuple[str, int, tuple[int, int]]) -> np.ndarray:
+    import torch
+
+    from task_outcome_ros.depth import sanitize_depth
+    from task_outcome_ros.model import nearest_depth
+    from training.render import read_pair
+
+    run_dir, index, size = args
+    full = torch.from_numpy(sanitize_depth(read_pair(Path(run_dir), index)[0]))[None]
+    return nearest_depth(full, torch.isfinite(full), size)[0].numpy().astype(np.float16)
+
+
+def nearest_cache_path(run_dir: Path, split: str, size: tuple[int, int]) -> Path:
+    return Path(run_dir) / "cache" / f"{split}_{size[0]}x{size[1]}_nearest.npz"
+
+
+def build_nearest_cache(run_dir: Path, split: str, size: tuple[int, int],
+                        workers: int = 2) -> Path:
+    """The nearest-point depths (``model.nearest_depth``) of one split at working size, in a
+    file of their own beside the main cache: only networks with that input channel need
+    them, and the main cache of an existing run stays as it is."""
+    path = nearest_cache_path(run_dir, split, size)
+    if path.exists():
+        return path
+    manifest = load_manifest(run_dir)
+    indices = [im["episode"] for im in manifest["images"] if im["split"] == split]
+    jobs = [(str(run_dir), i, tuple(size)) for i in indices]
+    if workers > 1 and len(jobs) > 64:
+        with mp.get_context("spawn").Pool(workers) as pool:
+            results = list(tqdm(pool.imap(_nearest_one, jobs, chunksize=32), total=len(jobs),
+                                desc=f"nearest {split}", unit="img"))
+    else:
+        results = [_nearest_one(j) for j in tqdm(jobs, desc=f"nearest {split}", unit="img")]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez(tmp, indices=np.array(indices, np.int64),
+             nearest=np.stack(results) if results else np.zeros((0, *size[::-1]), np.float16))
+    tmp.replace(path)
+    return path
+
+
+def load_cache(run_dir: Path, split: str, size: tuple[int, int], workers: int = 2,
+               nearest: bool = False) -> dict:
+    """{'indices', 'depth' (N,h,w) m, 'valid' (N,h,w) fraction, 'labels' (N,h,w) uint8},
+    plus 'nearest' (N,h,w) m when ``nearest`` (``build_nearest_cache``)."""
     with np.load(build_cache(run_dir, split, size, workers)) as data:
-        return {k: data[k] for k in data.files}
+        arrays = {k: data[k] for k in data.files}
+    if nearest:
+        with np.load(build_nearest_cache(run_dir, split, size, workers)) as data:
+            if not np.array_equal(data["indices"], arrays["indices"]):
+                raise ValueError(f"{nearest_cache_path(run_dir, split, size)} holds other "
+                                 "images than the main cache; delete it to rebuild it")
+            arrays["nearest"] = data["nearest"]
+    return arrays
 
 
 class OutcomeDataset:

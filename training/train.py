@@ -23,6 +23,7 @@ import math
 import time
 from contextlib import nullcontext
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -44,6 +45,7 @@ from task_outcome_ros.labels import (
 from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
     INTRINSICS_FROM_CAMERA_INFO,
+    NEAREST_HEIGHT,
     build_model,
     check_normalisation,
     input_channels,
@@ -119,10 +121,20 @@ def class_weights(labels: np.ndarray, power: float, num_classes: int) -> torch.T
     return torch.tensor(w / w.mean(), dtype=torch.float32)
 
 
+class Batch(NamedTuple):
+    """Working-size training images: depth (N, h, w) metres, valid fraction, labels (long),
+    intrinsics (N, 4) or None, nearest-point depth (N, h, w) or None."""
+    depth: torch.Tensor
+    valid: torch.Tensor
+    labels: torch.Tensor
+    intrinsics: torch.Tensor | None = None
+    nearest: torch.Tensor | None = None
+
+
 def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
             gen: torch.Generator, noise_level: float = 1.0,
-            intrinsics: torch.Tensor | None = None
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+            intrinsics: torch.Tensor | None = None, nearest: torch.Tensor | None = None,
+            ) -> Batch:
     """Batch augmentation that keeps labels honest. depth/valid float (N,h,w), labels long.
 
     ``noise_level`` (``TrainConfig.aug_noise``): each image gets re-drawn axial noise of
@@ -132,10 +144,16 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     from them, move with the image: a mirror mirrors the principal point, a shift shifts it.
     The whole-scene distance change is then left out: it would scale every height (the rim
     would no longer sit at the wall height), which is what exact intrinsics are there to
-    avoid. Returns (depth, valid, labels, intrinsics or None)."""
+    avoid.
+
+    ``nearest`` (N, h, w), the nearest-point depths, moves with ``depth`` (mirror, shift,
+    distance change) and gets noise of the same level drawn on its own after all the other
+    draws, so the random stream of a run without it is unchanged."""
     n = depth.shape[0]
     flip = torch.rand(n, generator=gen) < 0.5           # a mirrored scene is a valid scene
     depth = torch.where(flip[:, None, None], depth.flip(-1), depth)
+    if nearest is not None:
+        nearest = torch.where(flip[:, None, None], nearest.flip(-1), nearest)
     valid = torch.where(flip[:, None, None], valid.flip(-1), valid)
     labels = torch.where(flip[:, None, None], labels.flip(-1), labels)
     if intrinsics is not None:
@@ -146,7 +164,11 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     if dy or dx:
         depth, valid = depth.roll((dy, dx), (1, 2)), valid.roll((dy, dx), (1, 2))
         labels = labels.roll((dy, dx), (1, 2))
-        for t, fill in ((depth, 0.0), (valid, 0.0), (labels, IGNORE)):
+        moved = [(depth, 0.0), (valid, 0.0), (labels, IGNORE)]
+        if nearest is not None:
+            nearest = nearest.roll((dy, dx), (1, 2))
+            moved.append((nearest, 0.0))
+        for t, fill in moved:
             if dy > 0:
                 t[:, :dy] = fill
             elif dy < 0:
@@ -167,12 +189,15 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     if intrinsics is not None:
         scale = torch.ones_like(scale)  # drawn all the same: the random stream stays aligned
     per_pixel = SENSOR_NOISE_PER_Z2 * math.sqrt(depth.shape[1] * depth.shape[2] / REFERENCE_PIXELS)
-    sigma = per_pixel * noise_level * torch.rand(n, 1, 1, generator=gen) * depth ** 2
-    depth = depth * scale + torch.randn(depth.shape, generator=gen) * sigma
+    level = per_pixel * noise_level * torch.rand(n, 1, 1, generator=gen)
+    depth = depth * scale + torch.randn(depth.shape, generator=gen) * level * depth ** 2
     # Extra dropout: 0-3 % of pixels lose their depth (labels kept: the net must infer them).
     drop = torch.rand(depth.shape, generator=gen) < 0.03 * torch.rand(n, 1, 1, generator=gen)
     valid = torch.where(drop, torch.zeros_like(valid), valid)
-    return depth, valid, labels, intrinsics
+    if nearest is not None:
+        nearest = (nearest * scale
+                   + torch.randn(nearest.shape, generator=gen) * level * nearest ** 2)
+    return Batch(depth, valid, labels, intrinsics, nearest)
 
 
 def fitted_epochs(epochs: int, epoch_s: float, max_minutes: float) -> int:
@@ -254,20 +279,20 @@ def autocast_factory(precision: str, device_type: str):
 
 
 def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
-                 noise_level: float = 1.0):
-    """(depth, valid, labels, intrinsics) tensors of the cached images ``idx``, augmented
-    unless ``gen`` is None (the training loop's data step; bench/train_step.py times this very
-    function). intrinsics is None unless ``arrays`` holds them
-    (``TrainConfig.camera_intrinsics``)."""
-    depth = torch.from_numpy(arrays["depth"][idx].astype(np.float32))
-    valid = torch.from_numpy(arrays["valid"][idx].astype(np.float32))
-    labels = torch.from_numpy(arrays["labels"][idx].astype(np.int64))
-    intrinsics = (torch.from_numpy(arrays["intrinsics"][idx]) if "intrinsics" in arrays
-                  else None)
+                 noise_level: float = 1.0) -> Batch:
+    """The cached images ``idx`` as a ``Batch``, augmented unless ``gen`` is None (the
+    training loop's data step; bench/train_step.py times this very function). intrinsics and
+    nearest are None unless ``arrays`` holds them (``TrainConfig.camera_intrinsics``,
+    ``TrainConfig.nearest_height``)."""
+    def tensor(key: str, dtype) -> torch.Tensor | None:
+        return torch.from_numpy(arrays[key][idx].astype(dtype)) if key in arrays else None
+
+    batch = Batch(tensor("depth", np.float32), tensor("valid", np.float32),
+                  tensor("labels", np.int64), tensor("intrinsics", np.float32),
+                  tensor("nearest", np.float32))
     if gen is not None:
-        depth, valid, labels, intrinsics = augment(depth, valid, labels, gen, noise_level,
-                                                   intrinsics)
-    return depth, valid, labels, intrinsics
+        batch = augment(*batch[:3], gen, noise_level, batch.intrinsics, batch.nearest)
+    return batch
 
 
 def weighted_cross_entropy(logits: torch.Tensor, labels: torch.Tensor,
@@ -329,9 +354,9 @@ def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch
     conf = np.zeros((k, k), np.int64)
     counts = np.zeros((n, k), np.int64)
     for s in range(0, n, batch_size):
-        depth, valid, _, intrinsics = gather_batch(arrays, np.arange(s, min(s + batch_size, n)),
-                                                   None)
-        pred = model(network_input(depth, valid, norm, intrinsics).to(device)
+        depth, valid, _, intrinsics, nearest = gather_batch(
+            arrays, np.arange(s, min(s + batch_size, n)), None)
+        pred = model(network_input(depth, valid, norm, intrinsics, nearest=nearest).to(device)
                      ).argmax(1).cpu().numpy()
         # As inference does: fragments absorbed first, then no depth -> background.
         fragments = fragment_threshold(*pred.shape[1:])
@@ -385,7 +410,7 @@ RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
 RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
 ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
-                      "relief_window_px": 0}
+                      "relief_window_px": 0, "nearest_height": False}
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
@@ -449,14 +474,16 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     dataset = dataset_config_from_dict(manifest["config"])
     norm = task_normalisation(dataset)
     aug_noise = cfg.aug_noise * sensor_noise_ratio(dataset)
-    train_arrays = load_cache(run_dir, "train", cfg.input_size)
-    val_arrays = load_cache(run_dir, "val", cfg.input_size)
+    train_arrays = load_cache(run_dir, "train", cfg.input_size, nearest=cfg.nearest_height)
+    val_arrays = load_cache(run_dir, "val", cfg.input_size, nearest=cfg.nearest_height)
     if cfg.camera_intrinsics:
         norm["intrinsics"] = INTRINSICS_FROM_CAMERA_INFO
         for arrays in (train_arrays, val_arrays):
             arrays["intrinsics"] = manifest_intrinsics(manifest, arrays["indices"])
     if cfg.relief_window_px:
         norm["relief_window_px"] = cfg.relief_window_px
+    if cfg.nearest_height:
+        norm[NEAREST_HEIGHT] = True
     if len(train_arrays["indices"]) == 0:
         raise ValueError(f"{run_dir}: the train split is empty; generate more episodes")
     table = manifest_table(manifest)
@@ -522,10 +549,10 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         t_epoch = time.perf_counter()
         for b in bar:
             idx = np.sort(order[b * cfg.batch_size:(b + 1) * cfg.batch_size])
-            depth, valid, labels, intrinsics = gather_batch(
+            depth, valid, labels, intrinsics, nearest = gather_batch(
                 train_arrays, idx, gen if cfg.augment else None, aug_noise)
-            x = network_input(depth, valid, norm, intrinsics).to(device,
-                                                                 memory_format=memory_format)
+            x = network_input(depth, valid, norm, intrinsics, nearest=nearest).to(
+                device, memory_format=memory_format)
             labels = labels.to(device)
             for group in optim.param_groups:
                 group["lr"] = lr_at(epoch * steps_per_epoch + b, total_steps, cfg.lr)
