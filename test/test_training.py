@@ -349,7 +349,7 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
     assert ckpt.train_config["train"]["object_balance_pixels"] == 64
     assert ckpt.normalisation["relief_window_px"] == 5 and ckpt.normalisation["nearest_height"]
     assert ckpt.model_args["in_channels"] == 5
-    assert (small_run / "cache" / "val_160x120_nearest.npz").is_file()
+    assert (run / "cache" / "val_160x120_nearest.npz").is_file()
     assert ckpt.train_config["train"]["channels_last"] is False
     assert ckpt.train_config["train"]["amp"] == "off"
     assert ckpt.extra["precision"] == "fp32"
