@@ -27,16 +27,16 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    both: a small object stands out the same on any surface, by construction. Surfaces wider
    than the window (a table top, a tote's floor) read 0 up to their edges; narrow ones (walls)
    read their height.
-4. near-point height: the height of the near points under each working pixel
-   (``nearest_depth``: the quarter-nearest depth of its block of input pixels), measured from
-   the same support plane as channel 2, / ``height_scale_m``, clipped like it. Present when
-   the dict has ``"nearest_height": True`` (with a height channel). Why: the area resize
-   averages a block's depths, so a tote's 1 cm rim, about one working pixel wide, reads
-   somewhere between its top and the floor beside it, and so does the top edge of an object
-   leaning on it; whether the object's top rises above the rim (stuck) or not (inside) is a
-   matter of millimetres. The near points of a block seen from above are its highest, which
-   keeps the rim's and the object's tops at their true height in every working pixel they
-   cover a quarter of.
+4. near-side height: the height of the near side of each working pixel (``nearest_depth``:
+   the nearest of its block's four cells' mean depths), measured from the same support plane
+   as channel 2, / ``height_scale_m``, clipped like it. Present when the dict has
+   ``"nearest_height": True`` (with a height channel). Why: the area resize averages a
+   block's depths, so a tote's 1 cm rim, about one working pixel wide, reads somewhere
+   between its top and the floor beside it, and so does the top edge of an object leaning
+   on it; whether the object's top rises above the rim (stuck) or not (inside) is a matter
+   of millimetres. The near side of a block seen from above is its highest, which keeps the
+   rim's and the object's tops at their true height in every working pixel whose cell they
+   fill.
 
 The channels are computed in one place, ``network_input`` (torch), after the one resize,
 ``resize_depth`` (numpy, NaN-aware area average). ``preprocess`` (one numpy image) and
@@ -74,7 +74,6 @@ DEFAULT_NORMALISATION: dict[str, Any] = {
     "floor_fit": FLOOR_FIT}
 _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
 NEAREST_HEIGHT = "nearest_height"   # normalisation key of channel 4 (value True)
-NEAR_RANK_SHARE = 0.25              # nearest_depth: which near point of a block, as a share
 RELIEF_WINDOW_RANGE = (3, 63)  # odd working pixels: a window centred on its pixel
 _FLOOR_FITS = FLOOR_FITS
 # normalisation["intrinsics"]: where the height channel's camera comes from in training.
@@ -201,10 +200,8 @@ def preprocess_sanitized(depth_m: np.ndarray, input_size: tuple[int, int],
     norm = normalisation or DEFAULT_NORMALISATION
     depth, frac = resize_depth(depth_m, size)
     k = None if intrinsics is None else torch.as_tensor(intrinsics, dtype=torch.float32)[None]
-    nearest = None
-    if NEAREST_HEIGHT in norm:
-        full = torch.from_numpy(depth_m)[None]
-        nearest = nearest_depth(full, torch.isfinite(full), size)
+    nearest = (torch.from_numpy(nearest_depth(depth_m, size))[None] if NEAREST_HEIGHT in norm
+               else None)
     x = network_input(torch.from_numpy(depth)[None], torch.from_numpy(frac)[None],
                       norm, k, floor_tracker, nearest)
     return x[0].numpy()
@@ -235,38 +232,32 @@ def preprocess_batch(depth_m: torch.Tensor, input_size: tuple[int, int],
     frac = mask.clamp(0.0, 1.0)
     has = frac > 1e-6
     depth = torch.where(has, filled / frac.clamp_min(1e-6), torch.zeros_like(filled))
-    nearest = nearest_depth(d, valid, (w, h)) if NEAREST_HEIGHT in norm else None
+    nearest = None
+    if NEAREST_HEIGHT in norm:
+        images = torch.where(valid, d, torch.tensor(float("nan"))).cpu().numpy()
+        nearest = torch.from_numpy(np.stack([nearest_depth(i, (w, h)) for i in images])
+                                   ).to(d.device)
     return network_input(depth[:, 0], frac[:, 0], norm, intrinsics, nearest=nearest)
 
 
-def nearest_depth(depth: torch.Tensor, valid: torch.Tensor, input_size: tuple[int, int],
-                  ) -> torch.Tensor:
-    """(N, H, W) depth (metres) and validity (bool) -> (N, h, w): the depth of the near
-    points of each working pixel's block of input pixels, 0 where none is valid (channel 4
-    of ``network_input``).
+def nearest_depth(depth_m: np.ndarray, input_size: tuple[int, int]) -> np.ndarray:
+    """Sanitised (H, W) depth (metres, NaN invalid) -> (h, w) float32: the depth of the near
+    side of each working pixel, 0 where nothing is valid (channel 4 of ``network_input``).
 
-    "Near" is the ``NEAR_RANK_SHARE`` quantile of the block's valid depths from the near
-    side (the 4th nearest of 16 at 640 x 480 -> 160 x 120; the farthest valid one when fewer
-    are valid), not its minimum: a rim or an edge that covers a quarter of the block (1 cm at
-    1.3 m covers 4 of its 16 pixels) keeps its depth, while up to three stray returns (noise
-    tails, speckle, flying pixels) cannot pull it nearer. An integer factor makes exact
-    blocks; other sizes are first brought to the next integer multiple of the working size
-    by nearest-neighbour resampling. One torch path for the node, the datasets and training
-    alike."""
+    Each working pixel's block of input pixels is split 2 x 2; each cell's valid depths are
+    averaged (``resize_depth`` to twice the working size) and the nearest cell is kept. A rim
+    or an edge that fills a cell (1 cm at 1.3 m fills a column of cells at 640 x 480 -> 160 x
+    120) keeps its depth, which the block's average would mix with the floor beside it, while
+    a stray return (noise tail, flying pixel) is averaged with the rest of its cell rather
+    than taken as it is, as a block minimum would. About 0.5 ms a frame (two OpenCV
+    resizes)."""
     w, h = check_input_size(input_size)
-    depth = depth.float()
-    d = torch.where(valid, depth, torch.full_like(depth, float("inf")))
-    n, H, W = d.shape
-    fy, fx = -(-H // h), -(-W // w)
-    if (H, W) != (h * fy, w * fx):
-        d = F.interpolate(d[:, None], size=(h * fy, w * fx), mode="nearest")[:, 0]
-    blocks = d.reshape(n, h, fy, w, fx).permute(0, 1, 3, 2, 4).reshape(n, h, w, fy * fx)
-    ordered = blocks.sort(dim=-1).values                # inf (invalid) last
-    count = torch.isfinite(ordered).sum(-1, keepdim=True)
-    rank = max(1, round(NEAR_RANK_SHARE * fy * fx))
-    pick = (count.clamp(max=rank) - 1).clamp(min=0)
-    near = ordered.gather(-1, pick)[..., 0]
-    return torch.where(count[..., 0] > 0, near, torch.zeros_like(near))
+    cells, frac = resize_depth(depth_m, (2 * w, 2 * h))
+    cells = np.where(frac > 0, cells, np.float32(np.inf))
+    # Four strided views: numpy's min over two strided axes at once is about 8x slower.
+    near = np.minimum(np.minimum(cells[0::2, 0::2], cells[0::2, 1::2]),
+                      np.minimum(cells[1::2, 0::2], cells[1::2, 1::2]))
+    return np.where(np.isfinite(near), near, np.float32(0)).astype(np.float32, copy=False)
 
 
 def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,

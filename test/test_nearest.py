@@ -1,9 +1,10 @@
-"""The near-point height input channel (model.nearest_depth): a rim about one working pixel
+"""The near-side height input channel (model.nearest_depth): a rim about one working pixel
 wide keeps its true height at the working size, where the area resize averages it away."""
 
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -42,38 +43,33 @@ def _floor_with_a_thin_wall(h: int = 480, w: int = 640) -> np.ndarray:
     return ((top - 1.5) / (rays @ normal)).astype(np.float32)
 
 
-def test_near_depth_is_a_blocks_quarter_nearest_valid_depth_and_zero_without_one() -> None:
-    gen = torch.Generator().manual_seed(0)
-    depth = torch.rand(2, 48, 64, generator=gen) + 1.0
-    valid = torch.rand(2, 48, 64, generator=gen) > 0.3
-    valid[1, :4, :4] = False                    # a block with nothing valid
-    valid[1, 4:8, :4] = False
-    valid[1, 4, 0] = valid[1, 5, 1] = True      # and one with two valid pixels
-    got = nearest_depth(depth, valid, (16, 12)).numpy()
-    blocks = np.where(valid, depth, np.inf).reshape(2, 12, 4, 16, 4).transpose(0, 1, 3, 2, 4)
-    ordered = np.sort(blocks.reshape(2, 12, 16, 16), axis=-1)
-    count = np.isfinite(ordered).sum(-1)
-    # The 4th nearest of 16, or the farthest valid one when fewer than 4 are valid.
-    want = np.take_along_axis(ordered, np.clip(np.minimum(count, 4) - 1, 0, None)[..., None],
-                              -1)[..., 0]
-    np.testing.assert_array_equal(got, np.where(count > 0, want, 0).astype(np.float32))
-    assert got[1, 0, 0] == 0.0
-    assert got[1, 1, 0] == max(depth[1, 4, 0].item(), depth[1, 5, 1].item())
-    # Other factors (resampled to the next multiple first) and no resize at all work too.
-    assert nearest_depth(depth, valid, (20, 15)).shape == (2, 15, 20)
-    assert nearest_depth(depth, valid, (100, 80)).shape == (2, 80, 100)
-    same = nearest_depth(depth, valid, (64, 48))
-    assert torch.equal(same, torch.where(valid, depth, torch.zeros_like(depth)))
+def test_near_depth_is_the_nearest_of_a_blocks_four_cell_means_and_zero_without_one() -> None:
+    rng = np.random.default_rng(0)
+    depth = (rng.random((48, 64)) + 1.0).astype(np.float32)
+    depth[rng.random((48, 64)) < 0.3] = np.nan
+    depth[:4, :4] = np.nan                      # a block with nothing valid
+    depth[4:8, :4] = np.nan
+    depth[4, 0] = 1.5                           # and one with a single valid pixel
+    got = nearest_depth(depth, (16, 12))
+    cells = depth.reshape(24, 2, 32, 2)
+    with warnings.catch_warnings():           # empty cells and blocks: NaN, meant
+        warnings.simplefilter("ignore", RuntimeWarning)
+        means = np.nanmean(cells, axis=(1, 3))                     # (24, 32) cell means
+        want = np.nanmin(means.reshape(12, 2, 16, 2), axis=(1, 3))
+    np.testing.assert_allclose(got, np.nan_to_num(want, nan=0.0), rtol=1e-6)
+    assert got[0, 0] == 0.0 and got[1, 0] == 1.5
+    # Other sizes (smaller, larger) work through the same NaN-aware area resize.
+    assert nearest_depth(depth, (20, 15)).shape == (15, 20)
+    assert nearest_depth(depth, (100, 80)).shape == (80, 100)
 
 
-def test_three_stray_near_returns_in_a_block_do_not_move_its_near_depth() -> None:
-    depth = torch.full((1, 8, 8), 2.0)
-    depth[0, 1, 1] = depth[0, 2, 3] = depth[0, 0, 2] = 0.5      # three in the first block
-    got = nearest_depth(depth, torch.ones_like(depth, dtype=torch.bool), (2, 2))
-    assert torch.equal(got, torch.full((1, 2, 2), 2.0))
-    depth[0, 3, 0] = 0.5                                          # a fourth: a quarter of it
-    got = nearest_depth(depth, torch.ones_like(depth, dtype=torch.bool), (2, 2))
-    assert got[0, 0, 0].item() == 0.5 and got[0, 1, 1].item() == 2.0
+def test_a_stray_near_return_is_averaged_with_its_cell_while_a_full_cell_counts() -> None:
+    depth = np.full((8, 8), 2.0, np.float32)
+    depth[1, 1] = 0.5                                 # one stray return in the first block
+    got = nearest_depth(depth, (2, 2))
+    assert got[0, 0] == pytest.approx((0.5 + 3 * 2.0) / 4) and got[1, 1] == 2.0
+    depth[:2, 2:4] = 0.5                              # a whole cell of it: a thin edge
+    assert nearest_depth(depth, (2, 2))[0, 0] == pytest.approx(0.5)
 
 
 def test_a_thin_wall_keeps_its_height_in_the_nearest_channel_not_in_the_mean_one() -> None:
@@ -83,7 +79,7 @@ def test_a_thin_wall_keeps_its_height_in_the_nearest_channel_not_in_the_mean_one
     scale = DEFAULT_NORMALISATION["height_scale_m"]
     mean_height, nearest_height = x[2, 10:110] * scale, x[3, 10:110] * scale
     # Each of the two working columns holds half the wall: the average reads about half its
-    # height, the near points all of it (to a few mm: the fitted floor and the slant).
+    # height, the near side all of it (to a few mm: the fitted floor and the slant).
     assert np.abs(mean_height[:, 80:82] - WALL_HEIGHT / 2).max() < 0.03
     assert np.abs(nearest_height[:, 80:82] - WALL_HEIGHT).max() < 0.005
     # Elsewhere the two channels tell the same floor, within the slant of a block.

@@ -137,15 +137,13 @@ def build_cache(run_dir: Path, split: str, size: tuple[int, int], workers: int =
 
 
 def _nearest_one(args: tuple[str, int, tuple[int, int]]) -> np.ndarray:
-    import torch
-
     from task_outcome_ros.depth import sanitize_depth
     from task_outcome_ros.model import nearest_depth
     from training.render import read_pair
 
     run_dir, index, size = args
-    full = torch.from_numpy(sanitize_depth(read_pair(Path(run_dir), index)[0]))[None]
-    return nearest_depth(full, torch.isfinite(full), size)[0].numpy().astype(np.float16)
+    depth = sanitize_depth(read_pair(Path(run_dir), index)[0])
+    return nearest_depth(depth, size).astype(np.float16)
 
 
 def nearest_cache_path(run_dir: Path, split: str, size: tuple[int, int]) -> Path:
