@@ -267,7 +267,7 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
                   nearest: torch.Tensor | None = None) -> torch.Tensor:
     """(N, h, w) working-size depth (metres, as ``resize_depth`` gives) and valid fraction ->
     (N, C, h, w) network input (C = 2, 3 with heights, +1 with their local relief, +1 with
-    the nearest-point heights). Training uses this on its cached ``resize_depth`` output,
+    the near-side heights). Training uses this on its cached ``resize_depth`` output,
     after augmentation, so heights follow the augmented depth. ``nearest``: (N, h, w)
     ``nearest_depth`` of the same images, required when the normalisation has
     ``nearest_height``.
@@ -286,7 +286,7 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
         wants_nearest = NEAREST_HEIGHT in norm
         if wants_nearest and (nearest is None or nearest.shape != depth.shape):
             raise ValueError(f"this normalisation has {NEAREST_HEIGHT!r}: network_input needs "
-                             f"the nearest-point depth (model.nearest_depth) of shape "
+                             f"the near-side depth (model.nearest_depth) of shape "
                              f"{tuple(depth.shape)}, got "
                              f"{None if nearest is None else tuple(nearest.shape)}")
         height = height_above_floor(depth, has, norm["focal_over_width"], use,

@@ -106,6 +106,6 @@ def test_the_channel_is_declared_by_the_normalisation_and_required_by_network_in
         with pytest.raises(ValueError, match=NEAREST_HEIGHT):
             check_normalisation(bad)
     depth, frac = resize_depth(_floor_with_a_thin_wall(), (160, 120))
-    with pytest.raises(ValueError, match="nearest-point depth"):
+    with pytest.raises(ValueError, match="near-side depth"):
         network_input(torch.from_numpy(depth)[None], torch.from_numpy(frac)[None],
                       NEAREST_NORMALISATION)

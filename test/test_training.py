@@ -332,7 +332,7 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
     """The defaults are channels-last and, on a CPU with native bf16, bf16 autocast; the plain
     fp32 / NCHW path (every other CPU, or by choice) must keep working and say what it used."""
     run = tmp_path / "run"
-    # The object-balanced cross-entropy and the relief and nearest-point channels ride along:
+    # The object-balanced cross-entropy and the relief and near-side channels ride along:
     # its weights and the extra input channels go through the real loop (and the nearest
     # depths through their own cache); the run trains on the small run's dataset, linked
     # (--dataset-from), as a second recipe on the same images would.

@@ -171,7 +171,7 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                         "working pixels as a fourth input channel, so a small object stands "
                         "out the same on any surface (default 0 = off)")
     p.add_argument("--nearest-height", action=argparse.BooleanOptionalAction, default=None,
-                   help="add each working pixel's nearest-point height as an input channel, "
+                   help="add each working pixel's near-side height as an input channel, "
                         "so a thin rim and an object's top edge keep their true height "
                         "(default off)")
     p.add_argument("--camera-intrinsics", action=argparse.BooleanOptionalAction, default=None,

@@ -729,10 +729,10 @@ class TrainConfig:
     # this many working pixels: a small object reads its own height above whatever surface it
     # lies on (a room floor 0.75 m below the table included); 0 = off (three channels).
     relief_window_px: int = 0
-    # A fifth input channel, the height of each working pixel's nearest point
+    # One more input channel, the height of each working pixel's near side
     # (model.nearest_depth): the area resize averages a 1 cm rim, and the top edge of an object
-    # leaning on it, with what lies beside them; the nearest point keeps their tops' true
-    # height. False = off.
+    # leaning on it, with what lies beside them; the nearest of the block's four cells keeps
+    # their tops' true height. False = off.
     nearest_height: bool = False
     # Height channel from each image's own camera (the dataset's camera records; camera_info
     # on the robot) instead of the envelope's nominal one, whose focal length can be 6 % off:

@@ -152,7 +152,7 @@ def nearest_cache_path(run_dir: Path, split: str, size: tuple[int, int]) -> Path
 
 def build_nearest_cache(run_dir: Path, split: str, size: tuple[int, int],
                         workers: int = 2) -> Path:
-    """The nearest-point depths (``model.nearest_depth``) of one split at working size, in a
+    """The near-side depths (``model.nearest_depth``) of one split at working size, in a
     file of their own beside the main cache: only networks with that input channel need
     them, and the main cache of an existing run stays as it is."""
     path = nearest_cache_path(run_dir, split, size)

@@ -123,7 +123,7 @@ def class_weights(labels: np.ndarray, power: float, num_classes: int) -> torch.T
 
 class Batch(NamedTuple):
     """Working-size training images: depth (N, h, w) metres, valid fraction, labels (long),
-    intrinsics (N, 4) or None, nearest-point depth (N, h, w) or None."""
+    intrinsics (N, 4) or None, near-side depth (N, h, w) or None."""
     depth: torch.Tensor
     valid: torch.Tensor
     labels: torch.Tensor
@@ -146,7 +146,7 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     would no longer sit at the wall height), which is what exact intrinsics are there to
     avoid.
 
-    ``nearest`` (N, h, w), the nearest-point depths, moves with ``depth`` (mirror, shift,
+    ``nearest`` (N, h, w), the near-side depths, moves with ``depth`` (mirror, shift,
     distance change) and gets noise of the same level drawn on its own after all the other
     draws, so the random stream of a run without it is unchanged."""
     n = depth.shape[0]
