@@ -110,11 +110,13 @@ def cache_path(run_dir: Path, split: str, size: tuple[int, int]) -> Path:
     return Path(run_dir) / "cache" / f"{split}_{size[0]}x{size[1]}.npz"
 
 
-def build_cache(run_dir: Path, split: str, size: tuple[int, int], workers: int = 2) -> Path:
-    """Working-size arrays of one split (built once, reused by every training run)."""
+def _build_split_file(run_dir: Path, split: str, size: tuple[int, int], path: Path,
+                      one, names: tuple[str, ...], workers: int, desc: str) -> Path:
+    """``one((run_dir, episode, size))`` for every image of ``split``, its tuple's items
+    stacked into the arrays ``names`` of ``path`` beside the episode ``indices`` (written
+    once, atomically; an existing file is kept)."""
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
-    path = cache_path(run_dir, split, size)
     if path.exists():
         return path
     manifest = load_manifest(run_dir)
@@ -122,28 +124,34 @@ def build_cache(run_dir: Path, split: str, size: tuple[int, int], workers: int =
     jobs = [(str(run_dir), i, tuple(size)) for i in indices]
     if workers > 1 and len(jobs) > 64:
         with mp.get_context("spawn").Pool(workers) as pool:
-            results = list(tqdm(pool.imap(_cache_one, jobs, chunksize=32), total=len(jobs),
-                                desc=f"cache {split}", unit="img"))
+            results = list(tqdm(pool.imap(one, jobs, chunksize=32), total=len(jobs),
+                                desc=f"{desc} {split}", unit="img"))
     else:
-        results = [_cache_one(j) for j in tqdm(jobs, desc=f"cache {split}", unit="img")]
+        results = [one(j) for j in tqdm(jobs, desc=f"{desc} {split}", unit="img")]
+    empty = np.zeros((0, *size[::-1]))
+    arrays = {name: np.stack([r[k] for r in results]) if results else empty
+              for k, name in enumerate(names)}
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".tmp.npz")
-    np.savez(tmp, indices=np.array(indices, np.int64),
-             depth=np.stack([r[0] for r in results]) if results else np.zeros((0, *size[::-1])),
-             valid=np.stack([r[1] for r in results]) if results else np.zeros((0, *size[::-1])),
-             labels=np.stack([r[2] for r in results]) if results else np.zeros((0, *size[::-1])))
+    np.savez(tmp, indices=np.array(indices, np.int64), **arrays)
     tmp.replace(path)
     return path
 
 
-def _nearest_one(args: tuple[str, int, tuple[int, int]]) -> np.ndarray:
+def build_cache(run_dir: Path, split: str, size: tuple[int, int], workers: int = 2) -> Path:
+    """Working-size arrays of one split (built once, reused by every training run)."""
+    return _build_split_file(run_dir, split, size, cache_path(run_dir, split, size),
+                             _cache_one, ("depth", "valid", "labels"), workers, "cache")
+
+
+def _nearest_one(args: tuple[str, int, tuple[int, int]]) -> tuple[np.ndarray]:
     from task_outcome_ros.depth import sanitize_depth
     from task_outcome_ros.model import nearest_depth
     from training.render import read_pair
 
     run_dir, index, size = args
     depth = sanitize_depth(read_pair(Path(run_dir), index)[0])
-    return nearest_depth(depth, size).astype(np.float16)
+    return (nearest_depth(depth, size).astype(np.float16),)
 
 
 def nearest_cache_path(run_dir: Path, split: str, size: tuple[int, int]) -> Path:
@@ -155,24 +163,8 @@ def build_nearest_cache(run_dir: Path, split: str, size: tuple[int, int],
     """The near-side depths (``model.nearest_depth``) of one split at working size, in a
     file of their own beside the main cache: only networks with that input channel need
     them, and the main cache of an existing run stays as it is."""
-    path = nearest_cache_path(run_dir, split, size)
-    if path.exists():
-        return path
-    manifest = load_manifest(run_dir)
-    indices = [im["episode"] for im in manifest["images"] if im["split"] == split]
-    jobs = [(str(run_dir), i, tuple(size)) for i in indices]
-    if workers > 1 and len(jobs) > 64:
-        with mp.get_context("spawn").Pool(workers) as pool:
-            results = list(tqdm(pool.imap(_nearest_one, jobs, chunksize=32), total=len(jobs),
-                                desc=f"nearest {split}", unit="img"))
-    else:
-        results = [_nearest_one(j) for j in tqdm(jobs, desc=f"nearest {split}", unit="img")]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.npz")
-    np.savez(tmp, indices=np.array(indices, np.int64),
-             nearest=np.stack(results) if results else np.zeros((0, *size[::-1]), np.float16))
-    tmp.replace(path)
-    return path
+    return _build_split_file(run_dir, split, size, nearest_cache_path(run_dir, split, size),
+                             _nearest_one, ("nearest",), workers, "nearest")
 
 
 def load_cache(run_dir: Path, split: str, size: tuple[int, int], workers: int = 2,
