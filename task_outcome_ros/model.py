@@ -36,7 +36,7 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    on it; whether the object's top rises above the rim (stuck) or not (inside) is a matter
    of millimetres. The near side of a block seen from above is its highest, which keeps the
    rim's and the object's tops at their true height in every working pixel whose cell they
-   fill.
+   fill. It comes last, after the relief when both are on.
 
 The channels are computed in one place, ``network_input`` (torch), after the one resize,
 ``resize_depth`` (numpy, NaN-aware area average). ``preprocess`` (one numpy image) and
@@ -242,7 +242,8 @@ def preprocess_batch(depth_m: torch.Tensor, input_size: tuple[int, int],
 
 def nearest_depth(depth_m: np.ndarray, input_size: tuple[int, int]) -> np.ndarray:
     """Sanitised (H, W) depth (metres, NaN invalid) -> (h, w) float32: the depth of the near
-    side of each working pixel, 0 where nothing is valid (channel 4 of ``network_input``).
+    side of each working pixel, 0 where nothing is valid (for ``network_input``'s near-side
+    height channel).
 
     Each working pixel's block of input pixels is split 2 x 2; each cell's valid depths are
     averaged (``resize_depth`` to twice the working size) and the nearest cell is kept. A rim
