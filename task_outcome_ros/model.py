@@ -39,7 +39,8 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    fill. It comes last, after the relief when both are on.
 
 The channels are computed in one place, ``network_input`` (torch), after the one resize,
-``resize_depth`` (numpy, NaN-aware area average). ``preprocess`` (one numpy image) and
+``resize_depth`` (numpy, NaN-aware area average; the near-side depth, ``nearest_depth``, is
+a second one, to twice the working size). ``preprocess`` (one numpy image) and
 ``preprocess_batch`` (N torch images) both end in ``network_input``; a test proves they agree.
 """
 
@@ -73,7 +74,7 @@ DEFAULT_NORMALISATION: dict[str, Any] = {
     "height_scale_m": 0.25, "focal_over_width": FOCAL_OVER_WIDTH,
     "floor_fit": FLOOR_FIT}
 _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
-NEAREST_HEIGHT = "nearest_height"   # normalisation key of channel 4 (value True)
+NEAREST_HEIGHT = "nearest_height"   # normalisation key of the near-side height (value True)
 RELIEF_WINDOW_RANGE = (3, 63)  # odd working pixels: a window centred on its pixel
 _FLOOR_FITS = FLOOR_FITS
 # normalisation["intrinsics"]: where the height channel's camera comes from in training.

@@ -230,9 +230,8 @@ def link_dataset(source: Path, run_dir: Path) -> list[str]:
     """Make ``run_dir`` train on ``source``'s dataset: symlink each of its
     ``DATASET_ENTRIES`` into ``run_dir`` (nothing is copied; when the source has a cache, one
     built later for another working size lands in that shared folder). Running it again is a
-    no-op; an entry
-    ``run_dir`` already holds that is not the same link is refused, so two datasets never
-    mix. Returns the names linked."""
+    no-op; an entry ``run_dir`` already holds that is not the same link is refused, so two
+    datasets never mix. Returns the names linked."""
     source, run_dir = Path(source).resolve(), Path(run_dir)
     if not (source / "manifest.json").is_file():
         raise FileNotFoundError(f"{source}: no manifest.json; make its dataset first "
