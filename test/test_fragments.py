@@ -1,4 +1,5 @@
-"""Fragment absorption (one object, one outcome) and the hard-case tags of the evaluation."""
+"""Fragment absorption (one object, one outcome), the hard-case tags and the size bins of the
+evaluation."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from training.hard_cases import (
     object_gap,
     object_tags,
 )
+from training.size_recall import SIZE_BINS_PX, recall_by_size, size_bin, size_bin_names
 
 pytestmark = pytest.mark.unit
 
@@ -127,3 +129,28 @@ def test_hard_case_report_counts_mistakes_per_tag():
     assert by_gap[">= 20 mm"]["images"] == 2 and by_gap[">= 20 mm"]["mistakes"] == 1
     assert by_gap["5-10 mm"]["images"] == 0 and by_gap["5-10 mm"]["image_all_correct"] is None
     assert hard_case_report(rows, None) == {}
+
+
+def test_size_bins_scale_with_the_image_area():
+    assert size_bin_names()[0] == "50-100" and size_bin_names()[-1] == ">= 1600"
+    assert [size_bin(p, 480, 640) for p in (49, 50, 99, 100, 399, 1600, 10**6)] \
+        == [None, 0, 0, 1, 2, 5, 5]
+    # At 320 x 240 every edge is a quarter (rounded like the presence rule: 50 -> 12): 25
+    # pixels there are 100 at 640 x 480.
+    assert [size_bin(p, 240, 320) for p in (11, 12, 25, 400)] == [None, 0, 1, 5]
+
+
+def test_recall_by_size_counts_found_outcomes_per_bin():
+    def row(truth_px, found):
+        return {"truth": {"fell": truth_px >= 50, "ok": False},
+                "pred": {"fell": found, "ok": False},
+                "truth_pixels": {"fell": truth_px, "ok": 0}}
+    rows = [row(80, False), row(90, True), row(150, False), row(5000, True), row(0, True)]
+    report = recall_by_size(rows, ["fell", "ok"], 480, 640)
+    fell = {e["bin"]: e for e in report["by_outcome"]["fell"]}
+    assert fell["50-100"] == {"bin": "50-100", "images": 2, "found": 1, "recall": 0.5}
+    assert fell["100-200"]["recall"] == 0.0 and fell[">= 1600"]["recall"] == 1.0
+    assert fell["200-400"] == {"bin": "200-400", "images": 0, "found": 0, "recall": None}
+    # An invented outcome (truly absent) is not a recall event.
+    assert sum(e["images"] for e in report["by_outcome"]["ok"]) == 0
+    assert report["size_bins_px"] == list(SIZE_BINS_PX)

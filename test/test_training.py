@@ -269,6 +269,11 @@ def test_short_real_training_improves_the_loss_and_evaluates(small_run):
     assert sum(e["images"] for e in hard["by_boundary_gap"]) == report["n_images"]
     assert sum(e["mistakes"] for e in hard["by_boundary_gap"]) == len(report["mistakes"])
     assert (small_run / "eval" / "boundary_gap.png").exists()
+    by_size = report["recall_by_size"]["by_outcome"]
+    present = report["presence_recall"]   # every truly present outcome lands in one size bin
+    for outcome, support in ((o, report[o]["support"]) for o in present):
+        assert sum(e["images"] for e in by_size[outcome]) == support
+    assert (small_run / "eval" / "recall_by_size.png").stat().st_size > 0
     assert (small_run / "eval" / "confusion.png").exists()
 
     # Resuming a finished run changes nothing, also with another time budget (how a run is

@@ -266,6 +266,9 @@ def cmd_evaluate(args) -> None:
         print("  right per boundary gap: " + ", ".join(
             f"{e['bin']} {e['images'] - e['mistakes']}/{e['images']}"
             for e in hard["by_boundary_gap"]))
+    for outcome, bins in report["recall_by_size"]["by_outcome"].items():
+        print(f"  {outcome} found by size (px at 640 x 480): " + ", ".join(
+            f"{e['bin']} {e['found']}/{e['images']}" for e in bins if e["images"]))
 
 
 def add_robustness_args(p: argparse.ArgumentParser) -> None:

@@ -2,8 +2,8 @@
 
 Every image goes through ``OutcomeSegmenter.segment`` at full resolution (the node's code
 path), and the presence rule of labels.py decides which outcomes are present in the predicted
-and in the true label image. Writes ``eval.json`` (docs/interface.md §6), a confusion matrix and a
-picture of examples, mistakes first.
+and in the true label image. Writes ``eval.json`` (docs/interface.md §6), a confusion matrix, a
+picture of examples, mistakes first, and the recall by outcome size (size_recall.py).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from task_outcome_ros.labels import (
     IGNORE,
     PRESENCE_MIN_PIXELS,
     LabelTable,
+    outcome_pixel_counts,
     outcomes_present,
     presence_scores,
     presence_threshold,
@@ -36,6 +37,7 @@ from training.hard_cases import (
     gap_bin_names,
 )
 from training.render import read_pair, reported_camera
+from training.size_recall import plot_recall_by_size, recall_by_size
 from training.stats import wilson_interval
 
 
@@ -124,7 +126,8 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         pred_p.append([result.present[n] for n in table.outcome_names])
         conf += confusion(labels, result.labels, k)
         rows.append({"episode": im["episode"], "truth": t, "pred": result.present,
-                     "correct": t == result.present})
+                     "correct": t == result.present,
+                     "truth_pixels": outcome_pixel_counts(labels, table)})
     truth_arr, pred_arr = np.array(truth_p, bool), np.array(pred_p, bool)
     iou = np.diag(conf) / np.maximum(1, conf.sum(0) + conf.sum(1) - np.diag(conf))
     h, w = depth.shape
@@ -150,6 +153,7 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         "inference_ms_p50": float(np.percentile(times, 50)),
         "confusion": conf.tolist(),
         "mistakes": [r["episode"] for r in rows if not r["correct"]],
+        "recall_by_size": recall_by_size(rows, table.outcome_names, h, w),
         **hard_case_report(rows, episode_hard_cases(data_dir, {r["episode"] for r in rows})),
     }
     out_dir = Path(out_dir)
@@ -157,6 +161,7 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
     save_json(out_dir / "eval.json", report)
     plot_confusion(out_dir / "confusion.png", conf, table)
     plot_examples(out_dir / "eval_examples.png", data_dir, rows, seg, cameras, to_model_ids)
+    plot_recall_by_size(out_dir / "recall_by_size.png", report["recall_by_size"])
     if "hard_cases" in report:
         plot_boundary_gap(out_dir / "boundary_gap.png",
                           report["hard_cases"]["by_boundary_gap"], report["image_all_correct"])
