@@ -2,9 +2,10 @@
 
 Why: the working size (160 x 120) gives an outcome of 100 pixels at 640 x 480 about six
 working pixels. The tote model 0.9.0 finds fallen objects covering 1,600 pixels or more in
-473 of 474 validation images, but those under 200 pixels in 4 of 23, although nearly all of
-their pixels stand out from what lies behind them by two or more depth steps of the sensor
-(docs/experiments.md). One recall per outcome hides that; this report shows where it falls.
+473 of 474 validation images, but those under 200 pixels in 4 of 23, although 36 of the 37
+it misses have 50 or more pixels standing out from what lies behind them by two or more
+depth steps of the frame's sensor (docs/evaluation.md, "Small outcomes"). One recall per
+outcome hides that; this report shows where it falls.
 
 Sizes are given at 640 x 480 (like the presence rule's 50 pixels) and scaled with the image
 area, so runs at other resolutions share the bins.
