@@ -21,7 +21,7 @@ from task_outcome_ros.labels import (
     PRESENCE_MIN_PIXELS,
     LabelTable,
     outcome_pixel_counts,
-    outcomes_present,
+    presence_from_counts,
     presence_scores,
     presence_threshold,
 )
@@ -121,13 +121,14 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         labels = to_model_ids[labels]
         result = seg.segment(depth, cameras[im["episode"]])
         times.append(result.inference_ms)
-        t = outcomes_present(labels, presence_min_pixels, table)
+        counts = outcome_pixel_counts(labels, table)  # once: presence and size bins
+        t = presence_from_counts(counts, presence_threshold(*labels.shape, presence_min_pixels))
         truth_p.append([t[n] for n in table.outcome_names])
         pred_p.append([result.present[n] for n in table.outcome_names])
         conf += confusion(labels, result.labels, k)
         rows.append({"episode": im["episode"], "truth": t, "pred": result.present,
                      "correct": t == result.present,
-                     "truth_pixels": outcome_pixel_counts(labels, table)})
+                     "truth_pixels": counts})
     truth_arr, pred_arr = np.array(truth_p, bool), np.array(pred_p, bool)
     iou = np.diag(conf) / np.maximum(1, conf.sum(0) + conf.sum(1) - np.diag(conf))
     h, w = depth.shape
