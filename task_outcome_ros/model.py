@@ -76,6 +76,7 @@ DEFAULT_NORMALISATION: dict[str, Any] = {
 _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
 NEAREST_HEIGHT = "nearest_height"   # normalisation key of the near-side height (value True)
 RELIEF_WINDOW_RANGE = (3, 63)  # odd working pixels: a window centred on its pixel
+RELIEF_SMOOTHING_RANGE = (3, 15)  # odd working pixels of the relief's mean (local_relief)
 _FLOOR_FITS = FLOOR_FITS
 # normalisation["intrinsics"]: where the height channel's camera comes from in training.
 INTRINSICS_FROM_CAMERA_INFO = "camera_info"
@@ -121,6 +122,11 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
             raise ValueError(f"normalisation 'relief_window_px' needs a height channel, got "
                              f"{norm!r}")
         out["relief_window_px"] = check_relief_window(norm["relief_window_px"])
+    if "relief_smoothing_px" in norm:
+        if "relief_window_px" not in out:
+            raise ValueError(f"normalisation 'relief_smoothing_px' needs 'relief_window_px', "
+                             f"got {norm!r}")
+        out["relief_smoothing_px"] = check_relief_smoothing(norm["relief_smoothing_px"])
     if NEAREST_HEIGHT in norm:
         if norm[NEAREST_HEIGHT] is not True or "height_scale_m" not in out:
             raise ValueError(f"normalisation {NEAREST_HEIGHT!r} must be true, with a height "
@@ -137,6 +143,16 @@ def check_relief_window(window: Any) -> int:
     lo, hi = RELIEF_WINDOW_RANGE
     if type(window) is not int or not lo <= window <= hi or window % 2 == 0:
         raise ValueError(f"relief_window_px must be an odd int in [{lo}, {hi}] (a window "
+                         f"centred on its pixel), got {window!r}")
+    return window
+
+
+def check_relief_smoothing(window: Any) -> int:
+    """The relief's smoothing window (``local_relief``): an odd int in
+    ``RELIEF_SMOOTHING_RANGE``."""
+    lo, hi = RELIEF_SMOOTHING_RANGE
+    if type(window) is not int or not lo <= window <= hi or window % 2 == 0:
+        raise ValueError(f"relief_smoothing_px must be an odd int in [{lo}, {hi}] (a window "
                          f"centred on its pixel), got {window!r}")
     return window
 
@@ -299,14 +315,16 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
         clip = norm["clip"]
         channels.append((height / norm["height_scale_m"]).clamp(-clip, clip))
         if "relief_window_px" in norm:
-            relief = local_relief(height, has, norm["relief_window_px"])
+            relief = local_relief(height, has, norm["relief_window_px"],
+                                  norm.get("relief_smoothing_px", 1))
             channels.append((relief / norm["height_scale_m"]).clamp(0.0, clip))
         if wants_nearest:
             channels.append((nearest_height / norm["height_scale_m"]).clamp(-clip, clip))
     return torch.stack(channels, dim=1)
 
 
-def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int) -> torch.Tensor:
+def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
+                 smoothing: int = 1) -> torch.Tensor:
     """(N, h, w) heights (metres) and validity -> height above their morphological opening
     with a ``window`` x ``window`` square (metres, >= 0; 0 where invalid).
 
@@ -317,8 +335,15 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int) -> torc
     full view, while a surface reaching the frame still reads 0 up to its last pixel, carried
     in by the dilation from half a window inside. Invalid pixels neither lower the erosion nor
     raise the dilation; a window with no valid pixel leaves its pixel's relief 0. Inputs
-    carry no gradient."""
+    carry no gradient.
+
+    ``smoothing`` > 1: the relief of the heights' mean over a ``smoothing`` x ``smoothing``
+    square of valid pixels (``valid_mean``). Why: the erosion is a minimum over a window's
+    pixels, so on a noisy flat surface it sits in the noise's low tail and the surface reads
+    a relief that grows with the noise (docs/experiments.md); the mean narrows that tail."""
     height = height.float()
+    if smoothing > 1:
+        height = valid_mean(height, valid, smoothing)
     inf = torch.tensor(float("inf"), device=height.device)
     # max of -height with +inf beyond the frame = min of height with -inf beyond it
     eroded = -square_max(-torch.where(valid, height, inf), window, beyond=float("inf"))
@@ -326,6 +351,32 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int) -> torc
     relief = height - square_max(eroded, window)
     return torch.where(valid & torch.isfinite(relief), relief.clamp_min(0.0),
                        torch.zeros_like(height))
+
+
+def valid_mean(x: torch.Tensor, valid: torch.Tensor, window: int) -> torch.Tensor:
+    """(N, h, w) values and validity -> each valid pixel's mean over the valid pixels of the
+    centred ``window`` x ``window`` square (the frame's outside counts as invalid); invalid
+    pixels keep their value."""
+    weight = valid.float()
+    total = square_sum(torch.where(valid, x, torch.zeros_like(x)), window)
+    count = square_sum(weight, window)
+    return torch.where(valid, total / count.clamp_min(1.0), x)
+
+
+def square_sum(x: torch.Tensor, window: int) -> torch.Tensor:
+    """(N, h, w) float32 -> the sum over the centred ``window`` x ``window`` square, zeros
+    beyond the frame. On the CPU OpenCV's box filter (cheaper than torch's average pool at
+    160 x 120), elsewhere an average pool times the window's area."""
+    if x.device.type != "cpu" or len(x) == 0:
+        pad = window // 2
+        pooled = F.avg_pool2d(x[:, None], window, stride=1, padding=pad,
+                              count_include_pad=True)
+        return pooled[:, 0] * float(window * window)
+    planes = x.detach().contiguous().numpy()
+    return torch.from_numpy(np.stack([
+        cv2.boxFilter(plane, -1, (window, window), normalize=False,
+                      borderType=cv2.BORDER_CONSTANT)
+        for plane in planes]).reshape(planes.shape))
 
 
 def square_max(x: torch.Tensor, window: int, beyond: float = -float("inf")) -> torch.Tensor:

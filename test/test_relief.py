@@ -16,6 +16,8 @@ from task_outcome_ros.model import (
     preprocess_batch,
     square_max,
     square_max_torch,
+    square_sum,
+    valid_mean,
 )
 
 pytestmark = pytest.mark.unit
@@ -109,3 +111,52 @@ def test_relief_needs_the_height_channel() -> None:
 def test_an_empty_batch_gives_an_empty_relief() -> None:
     empty = torch.zeros(0, 12, 16)
     assert local_relief(empty, empty > 0, 5).shape == (0, 12, 16)
+
+
+def test_smoothing_keeps_a_box_and_narrows_the_relief_a_noisy_flat_surface_reads() -> None:
+    """The erosion is a minimum over the window, so on a noisy floor it sits in the noise's
+    low tail and the floor reads relief; the mean over 3 x 3 valid pixels narrows that tail
+    (for independent noise a third of its spread), while a 5 x 5 box keeps its height at
+    its centre."""
+    generator = torch.Generator().manual_seed(0)
+    height = 0.01 * torch.randn(1, 60, 80, generator=generator)   # 1 cm of noise on a floor
+    valid = torch.ones_like(height, dtype=torch.bool)
+    raw = local_relief(height, valid, 15)
+    smoothed = local_relief(height, valid, 15, smoothing=3)
+    assert raw.mean().item() > 0.01           # the floor reads more than its noise's spread
+    assert smoothed.mean().item() < 0.45 * raw.mean().item()
+    boxed = height.clone()
+    boxed[:, 20:25, 30:35] += 0.05
+    relief = local_relief(boxed, valid, 15, smoothing=3)
+    assert relief[0, 22, 32].item() == pytest.approx(0.05, abs=0.012)
+
+
+def test_the_valid_mean_ignores_invalid_pixels_and_the_frame_outside() -> None:
+    x = torch.arange(20.0).reshape(1, 4, 5)
+    valid = torch.ones_like(x, dtype=torch.bool)
+    valid[0, 1, 1] = False
+    x_invalid = x.clone()
+    x_invalid[0, 1, 1] = 1e6                  # an invalid pixel's value never leaks in
+    mean = valid_mean(x_invalid, valid, 3)
+    assert mean[0, 0, 0].item() == pytest.approx((0 + 1 + 5) / 3)   # corner: 3 valid in frame
+    assert mean[0, 1, 1].item() == 1e6                           # invalid keeps its value
+    assert mean[0, 2, 2].item() == pytest.approx((x[0, 1:4, 1:4].sum() - 6) / 8)
+    plain = torch.nn.functional.avg_pool2d(x[:, None], 3, 1, 1, count_include_pad=True)[:, 0]
+    assert torch.allclose(square_sum(x, 3), plain * 9)
+
+
+def test_the_relief_smoothing_is_stored_checked_and_the_same_on_both_paths() -> None:
+    smooth = {**RELIEF_NORMALISATION, "relief_smoothing_px": 3}
+    assert input_channels(smooth) == 4
+    depth = np.full((480, 640), 2.0, np.float32)
+    depth[200:220, 300:320] = 1.9
+    x = preprocess(depth, (160, 120), smooth)
+    batch = preprocess_batch(torch.from_numpy(depth), (160, 120), smooth)
+    np.testing.assert_allclose(batch[0].numpy(), x, atol=1e-5)
+    scale = DEFAULT_NORMALISATION["height_scale_m"]
+    assert x[3, 52, 77] * scale == pytest.approx(0.1, abs=0.01)   # the box's centre
+    for bad in (2, 1, 17, 3.0, True):
+        with pytest.raises(ValueError, match="relief_smoothing_px"):
+            check_normalisation({**smooth, "relief_smoothing_px": bad})
+    with pytest.raises(ValueError, match="needs 'relief_window_px'"):
+        check_normalisation({**DEFAULT_NORMALISATION, "relief_smoothing_px": 3})

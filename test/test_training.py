@@ -84,6 +84,13 @@ def test_train_config_validation_names_the_field():
             TrainConfig(relief_window_px=bad).validate()
     for good in (0, 3, 15):
         assert TrainConfig(relief_window_px=good).validate().relief_window_px == good
+    for bad in (2, 17, 3.0, True):
+        with pytest.raises(ConfigError, match="train.relief_smoothing_px"):
+            TrainConfig(relief_window_px=15, relief_smoothing_px=bad).validate()
+    with pytest.raises(ConfigError, match="relief_smoothing_px = 3 needs relief_window_px"):
+        TrainConfig(relief_smoothing_px=3).validate()
+    smooth = TrainConfig(relief_window_px=15, relief_smoothing_px=3).validate()
+    assert smooth.relief_smoothing_px == 3
     with pytest.raises(ConfigError, match="train.full_size_head = 8 needs space_to_depth 2"):
         TrainConfig(full_size_head=8).validate()
     with pytest.raises(ConfigError, match="train.full_size_head"):
@@ -316,6 +323,13 @@ def test_resume_compares_the_recipe_and_the_precision_not_the_budget():
                               "bf16", "bf16") == []
     assert resume_differences(flat, dataclasses.replace(cfg, relief_window_px=15),
                               "bf16", "bf16") == ["relief_window_px: 0 -> 15"]
+    # Saved before relief_smoothing_px existed: the relief of the heights themselves, i.e. 0.
+    rough = {k: v for k, v in saved.items() if k != "relief_smoothing_px"}
+    assert resume_differences(rough, cfg, "bf16", "bf16") == []
+    assert resume_differences(rough, dataclasses.replace(cfg, relief_window_px=15,
+                                                         relief_smoothing_px=3),
+                              "bf16", "bf16") == ["relief_smoothing_px: 0 -> 3",
+                                                  "relief_window_px: 0 -> 15"]
     # Saved before nearest_height existed: no such channel, i.e. False.
     far = {k: v for k, v in saved.items() if k != "nearest_height"}
     assert resume_differences(far, cfg, "bf16", "bf16") == []
@@ -343,7 +357,8 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
     # (--dataset-from), as a second recipe on the same images would.
     r = _cli("train", "--out", str(run), "--dataset-from", str(small_run), "--epochs", "1",
              "--batch-size", "8", "--device", "cpu", "--amp", "off", "--no-channels-last",
-             "--object-balance-pixels", "64", "--relief-window-px", "5", "--nearest-height")
+             "--object-balance-pixels", "64", "--relief-window-px", "5",
+             "--relief-smoothing-px", "3", "--nearest-height")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "train: cpu, fp32, contiguous activations" in r.stdout
     assert f"train: on the dataset of {small_run}" in r.stdout
@@ -353,6 +368,7 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
     ckpt = checkpoint.load(run / "train" / "best.pt")
     assert ckpt.train_config["train"]["object_balance_pixels"] == 64
     assert ckpt.normalisation["relief_window_px"] == 5 and ckpt.normalisation["nearest_height"]
+    assert ckpt.normalisation["relief_smoothing_px"] == 3
     assert ckpt.model_args["in_channels"] == 5
     assert (run / "cache" / "val_160x120_nearest.npz").is_file()
     assert ckpt.train_config["train"]["channels_last"] is False

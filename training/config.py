@@ -729,6 +729,10 @@ class TrainConfig:
     # this many working pixels: a small object reads its own height above whatever surface it
     # lies on (a room floor 0.75 m below the table included); 0 = off (three channels).
     relief_window_px: int = 0
+    # The relief of the heights' mean over a square of this many working pixels
+    # (model.valid_mean), so that sensor noise does not read as relief on a flat surface;
+    # needs relief_window_px; 0 = off (the relief of the heights themselves).
+    relief_smoothing_px: int = 0
     # One more input channel, the height of each working pixel's near side
     # (model.nearest_depth): the area resize averages a 1 cm rim, and the top edge of an object
     # leaning on it, with what lies beside them; the nearest of the block's four cells keeps
@@ -785,6 +789,16 @@ class TrainConfig:
                 check_relief_window(self.relief_window_px)
             except ValueError as exc:
                 raise ConfigError(f"{o}.{exc} (or 0: off)") from None
+        if self.relief_smoothing_px != 0 or type(self.relief_smoothing_px) is not int:
+            from task_outcome_ros.model import check_relief_smoothing
+
+            try:
+                check_relief_smoothing(self.relief_smoothing_px)
+            except ValueError as exc:
+                raise ConfigError(f"{o}.{exc} (or 0: off)") from None
+            if not self.relief_window_px:
+                raise ConfigError(f"{o}.relief_smoothing_px = {self.relief_smoothing_px} "
+                                  "needs relief_window_px: it smooths the relief channel")
         _check_int(o, "threads", self.threads, 1, 256)
         for name, value, allowed in (("device", self.device, ("cpu", "cuda", "auto")),
                                      ("amp", self.amp, ("auto", "bf16", "off"))):
