@@ -24,6 +24,10 @@ from task_outcome_ros import bag_io as B
 from task_outcome_ros.cli_args import positive_float, positive_int
 
 NODE_NAME = "outcome_replay"
+# Seconds to stay up after the last image when nothing acknowledges it (a best-effort QoS such
+# as sensor_data): a sample still unread when its writer goes away is lost, so a subscriber
+# on a loaded machine missed the bag's last frame in 1 of 5 demo runs without this.
+BEST_EFFORT_LINGER_S = 1.0
 
 
 def build_parser(qos_choices: tuple[str, ...]) -> argparse.ArgumentParser:
@@ -71,6 +75,9 @@ class Replayer:
         self.info_conn = B.bag_connection(reader, args.camera_info_topic, args.namespace,
                                           B.CAMERA_INFO)
         self.image_pub = node.create_publisher(_msg_type(B.IMAGE), args.topic, qos)
+        from rclpy.qos import ReliabilityPolicy
+
+        self.best_effort = qos.reliability == ReliabilityPolicy.BEST_EFFORT
         self.pubs = {self.image_conn.id: self.image_pub}
         if self.info_conn is not None:
             self.pubs[self.info_conn.id] = node.create_publisher(
@@ -184,6 +191,8 @@ def main(argv: list[str] | None = None) -> int:
             # periodic heartbeat, seconds later, although they arrived.)
             try:
                 acked = replayer.image_pub.wait_for_all_acked(Duration(seconds=3))
+                if replayer.best_effort and replayer.n_images():
+                    time.sleep(BEST_EFFORT_LINGER_S)
             except Exception:  # context already shut down (Ctrl-C)
                 acked = False
             print(f"{NODE_NAME}: published {replayer.n_images()} images and "
