@@ -26,7 +26,8 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    step, while the same box on the table reads 0.03 against 0. The relief reads 0.03 for
    both: a small object stands out the same on any surface, by construction. Surfaces wider
    than the window (a table top, a tote's floor) read 0 up to their edges; narrow ones (walls)
-   read their height.
+   read their height. With ``relief_smoothing_px`` it is the relief of the heights' mean over
+   a square of valid pixels (``valid_mean``), so that sensor noise does not read as relief.
 4. near-side height: the height of the near side of each working pixel (``nearest_depth``:
    the nearest of its block's four cells' mean depths), measured from the same support plane
    as channel 2, / ``height_scale_m``, clipped like it. Present when the dict has
