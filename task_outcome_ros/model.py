@@ -141,20 +141,20 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
 def check_relief_window(window: Any) -> int:
     """The relief channel's window (``local_relief``): an odd int in ``RELIEF_WINDOW_RANGE``,
     so that it is centred on its pixel."""
-    lo, hi = RELIEF_WINDOW_RANGE
-    if type(window) is not int or not lo <= window <= hi or window % 2 == 0:
-        raise ValueError(f"relief_window_px must be an odd int in [{lo}, {hi}] (a window "
-                         f"centred on its pixel), got {window!r}")
-    return window
+    return _check_odd_window("relief_window_px", window, RELIEF_WINDOW_RANGE)
 
 
 def check_relief_smoothing(window: Any) -> int:
     """The relief's smoothing window (``local_relief``): an odd int in
     ``RELIEF_SMOOTHING_RANGE``."""
-    lo, hi = RELIEF_SMOOTHING_RANGE
+    return _check_odd_window("relief_smoothing_px", window, RELIEF_SMOOTHING_RANGE)
+
+
+def _check_odd_window(name: str, window: Any, bounds: tuple[int, int]) -> int:
+    lo, hi = bounds
     if type(window) is not int or not lo <= window <= hi or window % 2 == 0:
-        raise ValueError(f"relief_smoothing_px must be an odd int in [{lo}, {hi}] (a window "
-                         f"centred on its pixel), got {window!r}")
+        raise ValueError(f"{name} must be an odd int in [{lo}, {hi}] (a window centred on "
+                         f"its pixel), got {window!r}")
     return window
 
 
@@ -373,11 +373,8 @@ def square_sum(x: torch.Tensor, window: int) -> torch.Tensor:
         pooled = F.avg_pool2d(x[:, None], window, stride=1, padding=pad,
                               count_include_pad=True)
         return pooled[:, 0] * float(window * window)
-    planes = x.detach().contiguous().numpy()
-    return torch.from_numpy(np.stack([
-        cv2.boxFilter(plane, -1, (window, window), normalize=False,
-                      borderType=cv2.BORDER_CONSTANT)
-        for plane in planes]).reshape(planes.shape))
+    return _per_plane(x, lambda plane: cv2.boxFilter(
+        plane, -1, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT))
 
 
 def square_max(x: torch.Tensor, window: int, beyond: float = -float("inf")) -> torch.Tensor:
@@ -388,10 +385,15 @@ def square_max(x: torch.Tensor, window: int, beyond: float = -float("inf")) -> t
     if x.device.type != "cpu" or len(x) == 0:
         return square_max_torch(x, window, beyond)
     kernel = np.ones((window, window), np.uint8)
+    return _per_plane(x, lambda plane: cv2.dilate(
+        plane, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=beyond))
+
+
+def _per_plane(x: torch.Tensor, opencv_op) -> torch.Tensor:
+    """An OpenCV filter applied to each (h, w) plane of a CPU (N, h, w) tensor."""
     planes = x.detach().contiguous().numpy()
-    return torch.from_numpy(np.stack([
-        cv2.dilate(plane, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=beyond)
-        for plane in planes]).reshape(planes.shape))
+    return torch.from_numpy(np.stack([opencv_op(plane) for plane in planes])
+                            .reshape(planes.shape))
 
 
 def square_max_torch(x: torch.Tensor, window: int,
