@@ -75,9 +75,6 @@ class Replayer:
         self.info_conn = B.bag_connection(reader, args.camera_info_topic, args.namespace,
                                           B.CAMERA_INFO)
         self.image_pub = node.create_publisher(_msg_type(B.IMAGE), args.topic, qos)
-        from rclpy.qos import ReliabilityPolicy
-
-        self.best_effort = qos.reliability == ReliabilityPolicy.BEST_EFFORT
         self.pubs = {self.image_conn.id: self.image_pub}
         if self.info_conn is not None:
             self.pubs[self.info_conn.id] = node.create_publisher(
@@ -132,6 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     """Console script ``outcome_replay``; returns the process exit code."""
     import rclpy
     from rclpy.duration import Duration
+    from rclpy.qos import ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import remove_ros_args
 
@@ -191,7 +189,9 @@ def main(argv: list[str] | None = None) -> int:
             # periodic heartbeat, seconds later, although they arrived.)
             try:
                 acked = replayer.image_pub.wait_for_all_acked(Duration(seconds=3))
-                if replayer.best_effort and replayer.n_images():
+                best_effort = (replayer.image_pub.qos_profile.reliability
+                               == ReliabilityPolicy.BEST_EFFORT)
+                if best_effort and replayer.n_images():
                     time.sleep(BEST_EFFORT_LINGER_S)
             except Exception:  # context already shut down (Ctrl-C)
                 acked = False
