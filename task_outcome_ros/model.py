@@ -128,6 +128,11 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
             raise ValueError(f"normalisation 'relief_smoothing_px' needs 'relief_window_px', "
                              f"got {norm!r}")
         out["relief_smoothing_px"] = check_relief_smoothing(norm["relief_smoothing_px"])
+    if "relief_base_px" in norm:
+        if "relief_window_px" not in out:
+            raise ValueError(f"normalisation 'relief_base_px' needs 'relief_window_px', "
+                             f"got {norm!r}")
+        out["relief_base_px"] = check_relief_base(norm["relief_base_px"])
     if NEAREST_HEIGHT in norm:
         if norm[NEAREST_HEIGHT] is not True or "height_scale_m" not in out:
             raise ValueError(f"normalisation {NEAREST_HEIGHT!r} must be true, with a height "
@@ -148,6 +153,12 @@ def check_relief_smoothing(window: Any) -> int:
     """The relief's smoothing window (``local_relief``): an odd int in
     ``RELIEF_SMOOTHING_RANGE``."""
     return _check_odd_window("relief_smoothing_px", window, RELIEF_SMOOTHING_RANGE)
+
+
+def check_relief_base(window: Any) -> int:
+    """The window of the mean the relief's surface is found on (``local_relief``): an odd
+    int in ``RELIEF_SMOOTHING_RANGE``."""
+    return _check_odd_window("relief_base_px", window, RELIEF_SMOOTHING_RANGE)
 
 
 def _check_odd_window(name: str, window: Any, bounds: tuple[int, int]) -> int:
@@ -317,7 +328,8 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
         channels.append((height / norm["height_scale_m"]).clamp(-clip, clip))
         if "relief_window_px" in norm:
             relief = local_relief(height, has, norm["relief_window_px"],
-                                  norm.get("relief_smoothing_px", 1))
+                                  norm.get("relief_smoothing_px", 1),
+                                  norm.get("relief_base_px"))
             channels.append((relief / norm["height_scale_m"]).clamp(0.0, clip))
         if wants_nearest:
             channels.append((nearest_height / norm["height_scale_m"]).clamp(-clip, clip))
@@ -325,7 +337,7 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
 
 
 def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
-                 smoothing: int = 1) -> torch.Tensor:
+                 smoothing: int = 1, base: int | None = None) -> torch.Tensor:
     """(N, h, w) heights (metres) and validity -> height above their morphological opening
     with a ``window`` x ``window`` square (metres, >= 0; 0 where invalid).
 
@@ -341,13 +353,23 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
     ``smoothing`` > 1: the relief of the heights' mean over a ``smoothing`` x ``smoothing``
     square of valid pixels (``valid_mean``). Why: the erosion is a minimum over a window's
     pixels, so on a noisy flat surface it sits in the noise's low tail and the surface reads
-    a relief that grows with the noise (docs/experiments.md); the mean narrows that tail."""
+    a relief that grows with the noise (docs/experiments.md); the mean narrows that tail.
+
+    ``base``: the surface (the opening) is found on the heights' mean over a ``base`` x
+    ``base`` square instead, while each pixel's own height stays the ``smoothing`` mean. Why:
+    the erosion's low tail is what grows with the noise (far floor at 3x noise), and a wider
+    mean narrows it further without blurring a small object's own top as much."""
     height = height.float()
+    surface = height
+    if base is not None and base > 1:
+        surface = valid_mean(height, valid, base)
     if smoothing > 1:
         height = valid_mean(height, valid, smoothing)
+    if base is None:
+        surface = height
     inf = torch.tensor(float("inf"), device=height.device)
     # max of -height with +inf beyond the frame = min of height with -inf beyond it
-    eroded = -square_max(-torch.where(valid, height, inf), window, beyond=float("inf"))
+    eroded = -square_max(-torch.where(valid, surface, inf), window, beyond=float("inf"))
     eroded = torch.where(torch.isinf(eroded), -inf, eroded)  # no support: never wins below
     relief = height - square_max(eroded, window)
     return torch.where(valid & torch.isfinite(relief), relief.clamp_min(0.0),

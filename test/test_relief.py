@@ -160,3 +160,25 @@ def test_the_relief_smoothing_is_stored_checked_and_the_same_on_both_paths() -> 
             check_normalisation({**smooth, "relief_smoothing_px": bad})
     with pytest.raises(ValueError, match="needs 'relief_window_px'"):
         check_normalisation({**DEFAULT_NORMALISATION, "relief_smoothing_px": 3})
+
+
+def test_a_wider_base_keeps_a_box_and_reads_less_relief_on_a_noisy_floor() -> None:
+    """``relief_base_px``: the surface found on a wider mean than each pixel's own height."""
+    gen = torch.Generator().manual_seed(0)
+    floor = 0.01 * torch.randn(1, 60, 80, generator=gen)   # a flat floor, 1 cm noise
+    box = floor.clone()
+    box[:, 20:24, 30:34] += 0.05
+    valid = torch.ones_like(floor, dtype=torch.bool)
+    same = local_relief(floor, valid, 15, 3)
+    wider = local_relief(floor, valid, 15, 3, 7)
+    assert wider.mean().item() < 0.7 * same.mean().item()   # the erosion's tail narrowed
+    assert local_relief(floor, valid, 15, 3, None).equal(same)
+    on_box = local_relief(box, valid, 15, 3, 7)[0, 21:23, 31:33]
+    assert on_box.min().item() > 0.03                          # the box still stands out
+    smooth = {**RELIEF_NORMALISATION, "relief_smoothing_px": 3, "relief_base_px": 7}
+    assert check_normalisation(smooth)["relief_base_px"] == 7
+    for bad in (2, 17, 7.0):
+        with pytest.raises(ValueError, match="relief_base_px"):
+            check_normalisation({**smooth, "relief_base_px": bad})
+    with pytest.raises(ValueError, match="needs 'relief_window_px'"):
+        check_normalisation({**DEFAULT_NORMALISATION, "relief_base_px": 7})

@@ -90,6 +90,10 @@ def test_train_config_validation_names_the_field():
     with pytest.raises(ConfigError, match="relief_smoothing_px = 3 needs relief_window_px"):
         TrainConfig(relief_smoothing_px=3).validate()
     smooth = TrainConfig(relief_window_px=15, relief_smoothing_px=3).validate()
+    with pytest.raises(ConfigError, match="relief_base_px = 7 needs relief_window_px"):
+        TrainConfig(relief_base_px=7).validate()
+    with pytest.raises(ConfigError, match="train.relief_base_px"):
+        TrainConfig(relief_window_px=15, relief_base_px=4).validate()
     assert smooth.relief_smoothing_px == 3
     with pytest.raises(ConfigError, match="train.full_size_head = 8 needs space_to_depth 2"):
         TrainConfig(full_size_head=8).validate()

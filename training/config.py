@@ -733,6 +733,11 @@ class TrainConfig:
     # (model.valid_mean), so that sensor noise does not read as relief on a flat surface;
     # needs relief_window_px; 0 = off (the relief of the heights themselves).
     relief_smoothing_px: int = 0
+    # The relief's surface (its opening) found on the heights' mean over a square of this
+    # many working pixels (model.local_relief), so that the erosion's low tail, which grows
+    # with the noise, stays narrow; needs relief_window_px; 0 = off (the surface from the
+    # same heights as each pixel's own).
+    relief_base_px: int = 0
     # One more input channel, the height of each working pixel's near side
     # (model.nearest_depth): the area resize averages a 1 cm rim, and the top edge of an object
     # leaning on it, with what lies beside them; the nearest of the block's four cells keeps
@@ -799,6 +804,16 @@ class TrainConfig:
             if not self.relief_window_px:
                 raise ConfigError(f"{o}.relief_smoothing_px = {self.relief_smoothing_px} "
                                   "needs relief_window_px: it smooths the relief channel")
+        if self.relief_base_px != 0 or type(self.relief_base_px) is not int:
+            from task_outcome_ros.model import check_relief_base
+
+            try:
+                check_relief_base(self.relief_base_px)
+            except ValueError as exc:
+                raise ConfigError(f"{o}.{exc} (or 0: off)") from None
+            if not self.relief_window_px:
+                raise ConfigError(f"{o}.relief_base_px = {self.relief_base_px} "
+                                  "needs relief_window_px: it shapes the relief channel")
         _check_int(o, "threads", self.threads, 1, 256)
         for name, value, allowed in (("device", self.device, ("cpu", "cuda", "auto")),
                                      ("amp", self.amp, ("auto", "bf16", "off"))):

@@ -410,7 +410,7 @@ RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
 RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
 ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
-                      "relief_window_px": 0, "relief_smoothing_px": 0,
+                      "relief_window_px": 0, "relief_smoothing_px": 0, "relief_base_px": 0,
                       "nearest_height": False}
 
 
@@ -485,6 +485,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         norm["relief_window_px"] = cfg.relief_window_px
     if cfg.relief_smoothing_px:
         norm["relief_smoothing_px"] = cfg.relief_smoothing_px
+    if cfg.relief_base_px:
+        norm["relief_base_px"] = cfg.relief_base_px
     if cfg.nearest_height:
         norm[NEAREST_HEIGHT] = True
     if len(train_arrays["indices"]) == 0:
