@@ -676,6 +676,21 @@ def load_json(path: Path) -> Any:
 LATER_NETWORK_OPTIONS = {"space_to_depth": 1, "full_size_head": 0}
 
 
+def _check_relief_option(owner: str, name: str, value: Any, check, relief_window_px: int | None
+                         ) -> None:
+    """A relief option: 0 (off) or what ``check`` (model.check_relief_*) accepts; the options
+    that shape the relief channel (``relief_window_px`` given) need that channel on."""
+    if value == 0 and type(value) is int:
+        return
+    try:
+        check(value)
+    except ValueError as exc:
+        raise ConfigError(f"{owner}.{exc} (or 0: off)") from None
+    if relief_window_px is not None and not relief_window_px:
+        raise ConfigError(f"{owner}.{name} = {value} needs relief_window_px: it shapes the "
+                          "relief channel")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Training of the outcome FCN (training/train.py). Defaults train the shipped model."""
@@ -787,33 +802,18 @@ class TrainConfig:
         _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
         _check_range(o, "lovasz_weight", self.lovasz_weight, 0.0, 100.0)
         _check_int(o, "object_balance_pixels", self.object_balance_pixels, 0, 1_000_000)
-        if self.relief_window_px != 0 or type(self.relief_window_px) is not int:  # 0: off
-            from task_outcome_ros.model import check_relief_window
+        from task_outcome_ros.model import (
+            check_relief_base,
+            check_relief_smoothing,
+            check_relief_window,
+        )
 
-            try:
-                check_relief_window(self.relief_window_px)
-            except ValueError as exc:
-                raise ConfigError(f"{o}.{exc} (or 0: off)") from None
-        if self.relief_smoothing_px != 0 or type(self.relief_smoothing_px) is not int:
-            from task_outcome_ros.model import check_relief_smoothing
-
-            try:
-                check_relief_smoothing(self.relief_smoothing_px)
-            except ValueError as exc:
-                raise ConfigError(f"{o}.{exc} (or 0: off)") from None
-            if not self.relief_window_px:
-                raise ConfigError(f"{o}.relief_smoothing_px = {self.relief_smoothing_px} "
-                                  "needs relief_window_px: it smooths the relief channel")
-        if self.relief_base_px != 0 or type(self.relief_base_px) is not int:
-            from task_outcome_ros.model import check_relief_base
-
-            try:
-                check_relief_base(self.relief_base_px)
-            except ValueError as exc:
-                raise ConfigError(f"{o}.{exc} (or 0: off)") from None
-            if not self.relief_window_px:
-                raise ConfigError(f"{o}.relief_base_px = {self.relief_base_px} "
-                                  "needs relief_window_px: it shapes the relief channel")
+        _check_relief_option(o, "relief_window_px", self.relief_window_px,
+                             check_relief_window, None)
+        _check_relief_option(o, "relief_smoothing_px", self.relief_smoothing_px,
+                             check_relief_smoothing, self.relief_window_px)
+        _check_relief_option(o, "relief_base_px", self.relief_base_px,
+                             check_relief_base, self.relief_window_px)
         _check_int(o, "threads", self.threads, 1, 256)
         for name, value, allowed in (("device", self.device, ("cpu", "cuda", "auto")),
                                      ("amp", self.amp, ("auto", "bf16", "off"))):
