@@ -358,14 +358,13 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
     ``base``: the surface (the opening) is found on the heights' mean over a ``base`` x
     ``base`` square instead, while each pixel's own height stays the ``smoothing`` mean. Why:
     the erosion's low tail is what grows with the noise (far floor at 3x noise), and a wider
-    mean narrows it further without blurring a small object's own top as much."""
+    mean narrows it further without blurring a small object's own top as much. Measured on the
+    default task with base 7, it did not hold 3x noise better (docs/experiments.md)."""
     height = height.float()
-    surface = height
-    if base is not None and base > 1:
-        surface = valid_mean(height, valid, base)
+    surface = None if base is None else (valid_mean(height, valid, base) if base > 1 else height)
     if smoothing > 1:
         height = valid_mean(height, valid, smoothing)
-    if base is None:
+    if surface is None:
         surface = height
     inf = torch.tensor(float("inf"), device=height.device)
     # max of -height with +inf beyond the frame = min of height with -inf beyond it
