@@ -481,12 +481,9 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         norm["intrinsics"] = INTRINSICS_FROM_CAMERA_INFO
         for arrays in (train_arrays, val_arrays):
             arrays["intrinsics"] = manifest_intrinsics(manifest, arrays["indices"])
-    if cfg.relief_window_px:
-        norm["relief_window_px"] = cfg.relief_window_px
-    if cfg.relief_smoothing_px:
-        norm["relief_smoothing_px"] = cfg.relief_smoothing_px
-    if cfg.relief_base_px:
-        norm["relief_base_px"] = cfg.relief_base_px
+    for key in ("relief_window_px", "relief_smoothing_px", "relief_base_px"):
+        if getattr(cfg, key):  # 0: off, left out of the normalisation
+            norm[key] = getattr(cfg, key)
     if cfg.nearest_height:
         norm[NEAREST_HEIGHT] = True
     if len(train_arrays["indices"]) == 0:
