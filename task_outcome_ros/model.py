@@ -47,6 +47,7 @@ a second one, to twice the working size). ``preprocess`` (one numpy image) and
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import cv2
@@ -78,6 +79,9 @@ _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
 NEAREST_HEIGHT = "nearest_height"   # normalisation key of the near-side height (value True)
 RELIEF_WINDOW_RANGE = (3, 63)  # odd working pixels: a window centred on its pixel
 RELIEF_SMOOTHING_RANGE = (3, 15)  # odd working pixels of the relief's mean (local_relief)
+RELIEF_NOISE_SDS_MAX = 10.0  # local noise deviations the relief may be lowered by
+NOISE_STEP_M = 0.001  # local_noise_sd's median works on |residuals| in these steps ...
+NOISE_STEPS = 255     # ... up to this many (uint8, so OpenCV's median takes any window)
 _FLOOR_FITS = FLOOR_FITS
 # normalisation["intrinsics"]: where the height channel's camera comes from in training.
 INTRINSICS_FROM_CAMERA_INFO = "camera_info"
@@ -124,12 +128,16 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
                              f"{norm!r}")
         out["relief_window_px"] = check_relief_window(norm["relief_window_px"])
     for key, check in (("relief_smoothing_px", check_relief_smoothing),
-                       ("relief_base_px", check_relief_base)):
+                       ("relief_base_px", check_relief_base),
+                       ("relief_noise_sds", check_relief_noise_sds)):
         if key in norm:
             if "relief_window_px" not in out:
                 raise ValueError(f"normalisation {key!r} needs 'relief_window_px', "
                                  f"got {norm!r}")
             out[key] = check(norm[key])
+    if "relief_noise_sds" in out and "relief_smoothing_px" not in out:
+        raise ValueError(f"normalisation 'relief_noise_sds' needs 'relief_smoothing_px' (the "
+                         f"noise is that of the heights' mean), got {norm!r}")
     if NEAREST_HEIGHT in norm:
         if norm[NEAREST_HEIGHT] is not True or "height_scale_m" not in out:
             raise ValueError(f"normalisation {NEAREST_HEIGHT!r} must be true, with a height "
@@ -156,6 +164,16 @@ def check_relief_base(window: Any) -> int:
     """The window of the mean the relief's surface is found on (``local_relief``): an odd
     int in ``RELIEF_SMOOTHING_RANGE``."""
     return _check_odd_window("relief_base_px", window, RELIEF_SMOOTHING_RANGE)
+
+
+def check_relief_noise_sds(sds: Any) -> float:
+    """How many local noise deviations the relief is lowered by (``local_relief``): a number
+    in (0, ``RELIEF_NOISE_SDS_MAX``]."""
+    if (isinstance(sds, bool) or not isinstance(sds, (int, float))
+            or not 0 < sds <= RELIEF_NOISE_SDS_MAX):
+        raise ValueError(f"relief_noise_sds must be a number in (0, {RELIEF_NOISE_SDS_MAX}], "
+                         f"got {sds!r}")
+    return float(sds)
 
 
 def _check_odd_window(name: str, window: Any, bounds: tuple[int, int]) -> int:
@@ -326,7 +344,8 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
         if "relief_window_px" in norm:
             relief = local_relief(height, has, norm["relief_window_px"],
                                   norm.get("relief_smoothing_px", 1),
-                                  norm.get("relief_base_px"))
+                                  norm.get("relief_base_px"),
+                                  norm.get("relief_noise_sds", 0.0))
             channels.append((relief / norm["height_scale_m"]).clamp(0.0, clip))
         if wants_nearest:
             channels.append((nearest_height / norm["height_scale_m"]).clamp(-clip, clip))
@@ -334,7 +353,8 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
 
 
 def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
-                 smoothing: int = 1, base: int | None = None) -> torch.Tensor:
+                 smoothing: int = 1, base: int | None = None,
+                 noise_sds: float = 0.0) -> torch.Tensor:
     """(N, h, w) heights (metres) and validity -> height above their morphological opening
     with a ``window`` x ``window`` square (metres, >= 0; 0 where invalid).
 
@@ -356,7 +376,14 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
     ``base`` square instead, while each pixel's own height stays the ``smoothing`` mean. Why:
     the erosion's low tail is what grows with the noise (far floor at 3x noise), and a wider
     mean narrows it further without blurring a small object's own top as much. Measured on the
-    default task with base 7, it did not hold 3x noise better (docs/experiments.md)."""
+    default task with base 7, it did not hold 3x noise better (docs/experiments.md).
+
+    ``noise_sds`` > 0 (with ``smoothing`` > 1): the relief minus that many deviations of the
+    smoothed heights' own noise, measured around each pixel (``local_noise_sd``). Why: on a
+    flat surface the relief is the erosion's low tail, a few noise deviations wide whatever
+    the noise, so subtracting a few measured deviations makes a noisy floor read about as
+    flat as a quiet one, while a small object keeps nearly all of its height (the noise is
+    measured by a median, which an object's edges barely move)."""
     raw = height.float()
 
     def mean_over(square: int) -> torch.Tensor:
@@ -369,8 +396,43 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
     eroded = -square_max(-torch.where(valid, surface, inf), window, beyond=float("inf"))
     eroded = torch.where(torch.isinf(eroded), -inf, eroded)  # no support: never wins below
     relief = height - square_max(eroded, window)
+    if noise_sds:
+        relief = relief - noise_sds * local_noise_sd(raw, height, valid, window, smoothing)
     return torch.where(valid & torch.isfinite(relief), relief.clamp_min(0.0),
                        torch.zeros_like(height))
+
+
+def local_noise_sd(raw: torch.Tensor, smoothed: torch.Tensor, valid: torch.Tensor,
+                   window: int, smoothing: int) -> torch.Tensor:
+    """(N, h, w) heights, their ``smoothing`` x ``smoothing`` mean and validity -> a robust
+    estimate of the noise deviation of that mean around each pixel (metres).
+
+    The median over a ``window`` x ``window`` square of |height - mean| (invalid pixels and
+    the frame's outside read 0, the border replicated), scaled to a deviation for Gaussian
+    noise (1.4826, and sqrt(1 - 1/n) for the mean's share of its own pixel) and divided by
+    ``smoothing`` for the mean of n = smoothing² pixels (independent noise). The median
+    works on millimetre steps up to 255 mm (``NOISE_STEP_M``, ``NOISE_STEPS``): uint8, which
+    OpenCV's median filter takes at any window size."""
+    n = smoothing * smoothing
+    residual = torch.nan_to_num((raw - smoothed).abs(), nan=0.0, posinf=0.0)
+    residual = torch.where(valid, residual, torch.zeros_like(raw))
+    steps = (residual / NOISE_STEP_M).round().clamp(0, NOISE_STEPS).to(torch.uint8)
+    median = square_median_u8(steps, window)
+    scale = NOISE_STEP_M * 1.4826 / math.sqrt(1.0 - 1.0 / n) / smoothing
+    return median.float() * scale
+
+
+def square_median_u8(x: torch.Tensor, window: int) -> torch.Tensor:
+    """(N, h, w) uint8 -> the median over the centred ``window`` x ``window`` square, the
+    border replicated. On the CPU OpenCV's median filter (0.5 ms at 160 x 120 for a 15 x 15
+    window); elsewhere a torch median over the unfolded squares, which gives the same
+    values."""
+    if x.device.type != "cpu" or len(x) == 0:
+        pad = window // 2
+        padded = F.pad(x[:, None].float(), (pad, pad, pad, pad), mode="replicate")
+        squares = F.unfold(padded, window)  # (N, window², h * w)
+        return squares.median(dim=1).values.reshape(x.shape).to(torch.uint8)
+    return _per_plane(x, lambda plane: cv2.medianBlur(plane, window))
 
 
 def valid_mean(x: torch.Tensor, valid: torch.Tensor, window: int) -> torch.Tensor:

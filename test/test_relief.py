@@ -11,11 +11,13 @@ from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
     check_normalisation,
     input_channels,
+    local_noise_sd,
     local_relief,
     preprocess,
     preprocess_batch,
     square_max,
     square_max_torch,
+    square_median_u8,
     square_sum,
     valid_mean,
 )
@@ -182,3 +184,55 @@ def test_a_wider_base_keeps_a_box_and_reads_less_relief_on_a_noisy_floor() -> No
             check_normalisation({**smooth, "relief_base_px": bad})
     with pytest.raises(ValueError, match="needs 'relief_window_px'"):
         check_normalisation({**DEFAULT_NORMALISATION, "relief_base_px": 7})
+
+
+def test_lowering_by_the_measured_noise_makes_a_noisy_floor_read_as_flat_as_a_quiet_one():
+    """``noise_sds``: the relief minus that many measured deviations of the smoothed heights'
+    noise. A floor's relief is the erosion's low tail, so it grows with the noise; lowered by
+    five measured deviations, a floor at 1 cm and at 3 cm of noise both read (almost) none,
+    while a 5 cm box keeps most of its height under 1 cm of noise."""
+    gen = torch.Generator().manual_seed(0)
+    unit = torch.randn(1, 60, 80, generator=gen)
+    valid = torch.ones_like(unit, dtype=torch.bool)
+    quiet, noisy = 0.01 * unit, 0.03 * unit
+    assert local_relief(noisy, valid, 15, 3).gt(0.02).float().mean().item() > 0.3
+    for floor in (quiet, noisy):
+        lowered = local_relief(floor, valid, 15, 3, noise_sds=5.0)
+        assert lowered.gt(0.01).float().mean().item() < 0.01
+    # The measured deviation is that of the 3 x 3 mean: a third of the pixels' own.
+    sd = local_noise_sd(noisy, valid_mean(noisy, valid, 3), valid, 15, 3)
+    assert sd.median().item() == pytest.approx(0.01, rel=0.15)
+    boxed = quiet.clone()
+    boxed[:, 20:25, 30:35] += 0.05
+    on_box = local_relief(boxed, valid, 15, 3, noise_sds=5.0)[0, 22, 32].item()
+    assert 0.025 < on_box <= local_relief(boxed, valid, 15, 3)[0, 22, 32].item()
+
+
+def test_opencv_and_torch_square_median_agree_including_at_the_border() -> None:
+    x = torch.randint(0, 256, (2, 25, 31), dtype=torch.uint8)
+    x[0, :, :5] = 255
+    for window in (3, 9, 15):
+        pad = window // 2
+        squares = torch.nn.functional.unfold(
+            torch.nn.functional.pad(x[:, None].float(), (pad,) * 4, mode="replicate"), window)
+        torch_median = squares.median(dim=1).values.reshape(x.shape).to(torch.uint8)
+        assert torch.equal(square_median_u8(x, window), torch_median)
+
+
+def test_the_relief_noise_sds_are_stored_checked_and_the_same_on_both_paths() -> None:
+    lowered = {**RELIEF_NORMALISATION, "relief_smoothing_px": 3, "relief_noise_sds": 5}
+    assert check_normalisation(lowered)["relief_noise_sds"] == 5.0
+    depth = np.full((480, 640), 2.0, np.float32)
+    depth[200:220, 300:320] = 1.9
+    depth += np.random.default_rng(0).normal(0, 0.01, depth.shape).astype(np.float32)
+    x = preprocess(depth, (160, 120), lowered)
+    batch = preprocess_batch(torch.from_numpy(depth), (160, 120), lowered)
+    np.testing.assert_allclose(batch[0].numpy(), x, atol=1e-5)
+    scale = DEFAULT_NORMALISATION["height_scale_m"]
+    assert x[3, 52, 77] * scale == pytest.approx(0.1, abs=0.02)    # the box's centre
+    assert np.mean(x[3, :40] * scale > 0.01) < 0.01               # the floor around it
+    for bad in (0, -1.0, 10.5, True, "5"):
+        with pytest.raises(ValueError, match="relief_noise_sds"):
+            check_normalisation({**lowered, "relief_noise_sds": bad})
+    with pytest.raises(ValueError, match="needs 'relief_smoothing_px'"):
+        check_normalisation({**RELIEF_NORMALISATION, "relief_noise_sds": 5})

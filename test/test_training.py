@@ -94,6 +94,12 @@ def test_train_config_validation_names_the_field():
         TrainConfig(relief_base_px=7).validate()
     with pytest.raises(ConfigError, match="train.relief_base_px"):
         TrainConfig(relief_window_px=15, relief_base_px=4).validate()
+    with pytest.raises(ConfigError, match="relief_noise_sds = 5.0 needs relief_smoothing_px"):
+        TrainConfig(relief_window_px=15, relief_noise_sds=5.0).validate()
+    with pytest.raises(ConfigError, match="train.relief_noise_sds"):
+        TrainConfig(relief_window_px=15, relief_smoothing_px=3, relief_noise_sds=11.0).validate()
+    assert TrainConfig(relief_window_px=15, relief_smoothing_px=3,
+                       relief_noise_sds=5.0).validate().relief_noise_sds == 5.0
     assert smooth.relief_smoothing_px == 3
     with pytest.raises(ConfigError, match="train.full_size_head = 8 needs space_to_depth 2"):
         TrainConfig(full_size_head=8).validate()

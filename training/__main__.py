@@ -178,6 +178,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help="find that relief's surface on the heights' mean over a square of this "
                         "many (odd) working pixels, so noise on a flat surface reads less "
                         "relief (default 0 = the same heights as each pixel's own)")
+    p.add_argument("--relief-noise-sds", type=float, default=None,
+                   help="lower that relief by this many deviations of the smoothed heights' "
+                        "noise, measured around each pixel, so a noisy far floor reads as "
+                        "flat as a quiet one (needs --relief-smoothing-px; default 0 = off)")
     p.add_argument("--nearest-height", action=argparse.BooleanOptionalAction, default=None,
                    help="add each working pixel's near-side height as an input channel, "
                         "so a thin rim and an object's top edge keep their true height "
@@ -208,7 +212,8 @@ def resolve_train_config(args: argparse.Namespace):
               "object_balance_pixels": "object_balance_pixels",
               "relief_window_px": "relief_window_px",
               "relief_smoothing_px": "relief_smoothing_px",
-              "relief_base_px": "relief_base_px", "nearest_height": "nearest_height",
+              "relief_base_px": "relief_base_px", "relief_noise_sds": "relief_noise_sds",
+              "nearest_height": "nearest_height",
               "camera_intrinsics": "camera_intrinsics", "space_to_depth": "space_to_depth",
               "full_size_head": "full_size_head"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}

@@ -680,7 +680,7 @@ def _check_relief_option(owner: str, name: str, value: Any, check, relief_window
                          ) -> None:
     """A relief option: 0 (off) or what ``check`` (model.check_relief_*) accepts; the options
     that shape the relief channel (``relief_window_px`` given) need that channel on."""
-    if value == 0 and type(value) is int:
+    if value == 0 and type(value) in (int, float):  # not False
         return
     try:
         check(value)
@@ -753,6 +753,10 @@ class TrainConfig:
     # with the noise, stays narrow; needs relief_window_px; 0 = off (the surface from the
     # same heights as each pixel's own).
     relief_base_px: int = 0
+    # The relief lowered by this many deviations of the smoothed heights' noise, measured
+    # around each pixel by a median (model.local_noise_sd), so that a noisy far floor reads
+    # about as flat as a quiet one; needs relief_smoothing_px; 0 = off.
+    relief_noise_sds: float = 0.0
     # One more input channel, the height of each working pixel's near side
     # (model.nearest_depth): the area resize averages a 1 cm rim, and the top edge of an object
     # leaning on it, with what lies beside them; the nearest of the block's four cells keeps
@@ -804,6 +808,7 @@ class TrainConfig:
         _check_int(o, "object_balance_pixels", self.object_balance_pixels, 0, 1_000_000)
         from task_outcome_ros.model import (
             check_relief_base,
+            check_relief_noise_sds,
             check_relief_smoothing,
             check_relief_window,
         )
@@ -814,6 +819,11 @@ class TrainConfig:
                              check_relief_smoothing, self.relief_window_px)
         _check_relief_option(o, "relief_base_px", self.relief_base_px,
                              check_relief_base, self.relief_window_px)
+        _check_relief_option(o, "relief_noise_sds", self.relief_noise_sds,
+                             check_relief_noise_sds, self.relief_window_px)
+        if self.relief_noise_sds and not self.relief_smoothing_px:
+            raise ConfigError(f"{o}.relief_noise_sds = {self.relief_noise_sds} needs "
+                              "relief_smoothing_px: the noise is that of the heights' mean")
         _check_int(o, "threads", self.threads, 1, 256)
         for name, value, allowed in (("device", self.device, ("cpu", "cuda", "auto")),
                                      ("amp", self.amp, ("auto", "bf16", "off"))):

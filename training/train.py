@@ -411,7 +411,7 @@ RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
 ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
                       "relief_window_px": 0, "relief_smoothing_px": 0, "relief_base_px": 0,
-                      "nearest_height": False}
+                      "relief_noise_sds": 0.0, "nearest_height": False}
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
@@ -481,7 +481,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         norm["intrinsics"] = INTRINSICS_FROM_CAMERA_INFO
         for arrays in (train_arrays, val_arrays):
             arrays["intrinsics"] = manifest_intrinsics(manifest, arrays["indices"])
-    for key in ("relief_window_px", "relief_smoothing_px", "relief_base_px"):
+    for key in ("relief_window_px", "relief_smoothing_px", "relief_base_px",
+                "relief_noise_sds"):
         if getattr(cfg, key):  # 0: off, left out of the normalisation
             norm[key] = getattr(cfg, key)
     if cfg.nearest_height:
