@@ -383,8 +383,13 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
     flat surface the relief is the erosion's low tail, a few noise deviations wide whatever
     the noise, so subtracting a few measured deviations makes a noisy floor read about as
     flat as a quiet one, while a small object keeps nearly all of its height (the noise is
-    measured by a median, which an object's edges barely move)."""
+    measured by a median, which an object's edges barely move). A pixel whose ``smoothing``
+    square is not mostly valid reads no relief and holds up no surface (``majority_valid``):
+    there the mean averages little and the median sees no noise, so the isolated pixels where
+    a far floor fades out of range read their raw noise as relief (found at 3x noise)."""
     raw = height.float()
+    if noise_sds:
+        valid = majority_valid(valid, smoothing)
 
     def mean_over(square: int) -> torch.Tensor:
         return valid_mean(raw, valid, square) if square > 1 else raw
@@ -400,6 +405,14 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
         relief = relief - noise_sds * local_noise_sd(raw, height, valid, window, smoothing)
     return torch.where(valid & torch.isfinite(relief), relief.clamp_min(0.0),
                        torch.zeros_like(height))
+
+
+def majority_valid(valid: torch.Tensor, window: int) -> torch.Tensor:
+    """Valid pixels more than half of whose centred ``window`` x ``window`` square, within
+    the frame, is valid."""
+    count = square_sum(valid.float(), window)
+    in_frame = square_sum(torch.ones_like(valid, dtype=torch.float32), window)
+    return valid & (count > in_frame / 2)
 
 
 def local_noise_sd(raw: torch.Tensor, smoothed: torch.Tensor, valid: torch.Tensor,

@@ -13,6 +13,7 @@ from task_outcome_ros.model import (
     input_channels,
     local_noise_sd,
     local_relief,
+    majority_valid,
     preprocess,
     preprocess_batch,
     square_max,
@@ -206,6 +207,29 @@ def test_lowering_by_the_measured_noise_makes_a_noisy_floor_read_as_flat_as_a_qu
     boxed[:, 20:25, 30:35] += 0.05
     on_box = local_relief(boxed, valid, 15, 3, noise_sds=5.0)[0, 22, 32].item()
     assert 0.025 < on_box <= local_relief(boxed, valid, 15, 3)[0, 22, 32].item()
+
+
+def test_where_a_floor_fades_out_of_range_its_isolated_pixels_read_no_lowered_relief():
+    """Past a far floor's range only isolated pixels stay valid: their 3 x 3 mean is
+    themselves and the median of residuals sees no noise, so without the majority rule each
+    reads its raw noise as relief."""
+    gen = torch.Generator().manual_seed(1)
+    height = 0.05 * torch.randn(1, 60, 80, generator=gen)     # a noisy far floor
+    valid = torch.ones_like(height, dtype=torch.bool)
+    valid[:, :20] = torch.rand(1, 20, 80, generator=gen) < 0.15  # fading out: 15 % valid
+    lowered = local_relief(height, valid, 15, 3, noise_sds=5.0)
+    assert lowered[:, :18].abs().max().item() == 0.0
+    supported = majority_valid(valid, 3)
+    assert supported[:, 25:].all() and not supported[:, :18].any()
+    assert local_relief(height, valid, 15, 3)[:, :18].gt(0.02).any()   # what it prevents
+
+
+def test_majority_valid_counts_the_square_within_the_frame() -> None:
+    valid = torch.ones(1, 6, 6, dtype=torch.bool)
+    valid[:, :, 3:] = False
+    expected = torch.zeros_like(valid)
+    expected[:, :, :3] = True                  # column 2: 6 of 9 valid; corners: 4 of 4
+    assert torch.equal(majority_valid(valid, 3), expected)
 
 
 def test_opencv_and_torch_square_median_agree_including_at_the_border() -> None:
