@@ -231,6 +231,26 @@ def small_run(tmp_path_factory) -> Path:
     return out
 
 
+def test_run_makes_the_dataset_trains_and_evaluates_in_one_command(tmp_path):
+    """`run` is what `make ship` and `make train` call: dataset, train and evaluate in turn,
+    on options of `dataset` and `train` alike."""
+    out = tmp_path / "run"
+    r = _cli("run", "--out", str(out), "--episodes", "20", "--chunk-size", "10", "--seed", "3",
+             "--epochs", "1", "--batch-size", "4", "--device", "cpu")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert len(json.loads((out / "train" / "history.json").read_text())) == 1
+    report = json.loads((out / "eval" / "eval.json").read_text())
+    assert report["n_images"] == 1 and report["model"].endswith("best.pt")
+
+
+def test_run_refuses_a_bad_training_option_before_making_the_dataset(tmp_path, capsys):
+    from training.__main__ import main
+
+    assert main(["run", "--out", str(tmp_path / "run"), "--lr", "-1"]) == 2
+    assert "train.lr" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists(), "no minutes of dataset spent on a refused recipe"
+
+
 def test_evaluation_of_a_known_model_gives_the_scores_the_truth_implies(small_run, tmp_path):
     """A model that says success on every valid pixel: its presence precision and recall per
     outcome follow from the manifest's truth alone, so evaluate's arithmetic is checked."""

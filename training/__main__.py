@@ -223,15 +223,20 @@ def resolve_train_config(args: argparse.Namespace):
 
 
 def cmd_train(args) -> None:
-    from training.train import train
-
-    cfg = resolve_train_config(args)
+    cfg = resolve_train_config(args)   # a bad option is refused before anything is linked
     if args.dataset_from is not None:
         from training.dataset import link_dataset
 
         linked = link_dataset(args.dataset_from, Path(args.out))
         print(f"train: on the dataset of {args.dataset_from} ({', '.join(linked)} linked "
               f"into {args.out})")
+    train_and_ship(args, cfg)
+
+
+def train_and_ship(args, cfg) -> None:
+    """Train on the dataset in --out (and ship with --ship): what `train` and `run` share."""
+    from training.train import train
+
     best = train(args.out, cfg, resume=not args.no_resume)
     print(f"train: best checkpoint {best}")
     if args.ship:
@@ -385,8 +390,9 @@ def cmd_demo(args) -> int:
 
 def cmd_run(args) -> None:
     """Everything: dataset, train (and ship), evaluate on the validation split."""
+    cfg = resolve_train_config(args)   # refused before minutes of dataset, not after
     cmd_dataset(args)
-    cmd_train(args)
+    train_and_ship(args, cfg)          # on the dataset it has just made: no --dataset-from
     cmd_evaluate(args)
 
 
