@@ -385,7 +385,8 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
     flat as a quiet one, while a small object keeps nearly all of its height (the noise is
     measured by a median, which an object's edges barely move). A pixel whose ``smoothing``
     square is not mostly valid reads no relief and holds up no surface (``majority_valid``):
-    there the mean averages little and the median sees no noise, so the isolated pixels where
+    there the mean averages little and an isolated pixel, its own mean, shows no residual for
+    the median to measure, so the isolated pixels where
     a far floor fades out of range read their raw noise as relief (found at 3x noise)."""
     raw = height.float()
     if noise_sds:
@@ -417,35 +418,54 @@ def majority_valid(valid: torch.Tensor, window: int) -> torch.Tensor:
 
 def local_noise_sd(raw: torch.Tensor, smoothed: torch.Tensor, valid: torch.Tensor,
                    window: int, smoothing: int) -> torch.Tensor:
-    """(N, h, w) heights, their ``smoothing`` x ``smoothing`` mean and validity -> a robust
-    estimate of the noise deviation of that mean around each pixel (metres).
+    """(N, h, w) heights, their ``smoothing`` x ``smoothing`` mean over valid pixels and the
+    validity -> a robust estimate of the noise deviation of each pixel's mean (metres).
 
-    The median over a ``window`` x ``window`` square of |height - mean| (invalid pixels and
-    the frame's outside read 0, the border replicated), scaled to a deviation for Gaussian
-    noise (1.4826, and sqrt(1 - 1/n) for the mean's share of its own pixel) and divided by
-    ``smoothing`` for the mean of n = smoothing² pixels (independent noise). The median
-    works on millimetre steps up to 255 mm (``NOISE_STEP_M``, ``NOISE_STEPS``): uint8, which
-    OpenCV's median filter takes at any window size."""
+    The pixels' own deviation is the median over a ``window`` x ``window`` square of
+    |height - mean|, scaled to a deviation for Gaussian noise (1.4826, and sqrt(1 - 1/n) for
+    the mean's share of its own pixel, n = smoothing² as inside a valid surface); a pixel's
+    mean of k valid pixels has that divided by sqrt(k) (independent noise), so pixels with
+    fewer valid neighbours get the larger deviation they have. Invalid pixels enter the median
+    as a checkerboard of the lowest and highest steps, which cancel in pairs, so a window that
+    is partly invalid still measures its valid pixels' noise rather than sliding towards 0.
+    The median works on millimetre steps up to 255 mm (``NOISE_STEP_M``, ``NOISE_STEPS``):
+    uint8, which OpenCV's median filter takes at any window size."""
     n = smoothing * smoothing
     residual = torch.nan_to_num((raw - smoothed).abs(), nan=0.0, posinf=0.0)
-    residual = torch.where(valid, residual, torch.zeros_like(raw))
     steps = (residual / NOISE_STEP_M).round().clamp(0, NOISE_STEPS).to(torch.uint8)
-    median = square_median_u8(steps, window)
-    scale = NOISE_STEP_M * 1.4826 / math.sqrt(1.0 - 1.0 / n) / smoothing
-    return median.float() * scale
+    h, w = raw.shape[-2:]
+    rows = torch.arange(h, device=raw.device)[:, None]
+    cols = torch.arange(w, device=raw.device)[None, :]
+    checkerboard = ((rows + cols) % 2).to(torch.uint8) * NOISE_STEPS
+    steps = torch.where(valid, steps, checkerboard.expand_as(steps))
+    median = square_median_u8(steps, window).float()
+    count = square_sum(valid.float(), smoothing).clamp_min(1.0)   # the mean's own pixels
+    pixel_sd = median * (NOISE_STEP_M * 1.4826 / math.sqrt(1.0 - 1.0 / n))
+    return pixel_sd / count.sqrt()
 
 
 def square_median_u8(x: torch.Tensor, window: int) -> torch.Tensor:
     """(N, h, w) uint8 -> the median over the centred ``window`` x ``window`` square, the
     border replicated. On the CPU OpenCV's median filter (0.5 ms at 160 x 120 for a 15 x 15
-    window); elsewhere a torch median over the unfolded squares, which gives the same
-    values."""
+    window); elsewhere ``square_median_torch``, which gives the same values."""
     if x.device.type != "cpu" or len(x) == 0:
-        pad = window // 2
-        padded = F.pad(x[:, None].float(), (pad, pad, pad, pad), mode="replicate")
-        squares = F.unfold(padded, window)  # (N, window², h * w)
-        return squares.median(dim=1).values.reshape(x.shape).to(torch.uint8)
+        return square_median_torch(x, window)
     return _per_plane(x, lambda plane: cv2.medianBlur(plane, window))
+
+
+def square_median_torch(x: torch.Tensor, window: int) -> torch.Tensor:
+    """``square_median_u8`` in torch: the median over the unfolded squares, one image at a
+    time (the squares of one 160 x 120 image at window 15 take 17 MB)."""
+    pad = window // 2
+
+    def one(image: torch.Tensor) -> torch.Tensor:
+        padded = F.pad(image[None, None].float(), (pad, pad, pad, pad), mode="replicate")
+        squares = F.unfold(padded, window)  # (1, window², h * w)
+        return squares.median(dim=1).values.reshape(image.shape).to(torch.uint8)
+
+    if len(x) == 0:
+        return x.clone()
+    return torch.stack([one(image) for image in x])
 
 
 def valid_mean(x: torch.Tensor, valid: torch.Tensor, window: int) -> torch.Tensor:

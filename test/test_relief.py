@@ -18,6 +18,7 @@ from task_outcome_ros.model import (
     preprocess_batch,
     square_max,
     square_max_torch,
+    square_median_torch,
     square_median_u8,
     square_sum,
     valid_mean,
@@ -211,7 +212,7 @@ def test_lowering_by_the_measured_noise_makes_a_noisy_floor_read_as_flat_as_a_qu
 
 def test_where_a_floor_fades_out_of_range_its_isolated_pixels_read_no_lowered_relief():
     """Past a far floor's range only isolated pixels stay valid: their 3 x 3 mean is
-    themselves and the median of residuals sees no noise, so without the majority rule each
+    themselves, with no residual for the median to measure, so without the majority rule each
     reads its raw noise as relief."""
     gen = torch.Generator().manual_seed(1)
     height = 0.05 * torch.randn(1, 60, 80, generator=gen)     # a noisy far floor
@@ -233,14 +234,35 @@ def test_majority_valid_counts_the_square_within_the_frame() -> None:
 
 
 def test_opencv_and_torch_square_median_agree_including_at_the_border() -> None:
-    x = torch.randint(0, 256, (2, 25, 31), dtype=torch.uint8)
+    x = torch.randint(0, 256, (2, 25, 31), dtype=torch.uint8,
+                      generator=torch.Generator().manual_seed(2))
     x[0, :, :5] = 255
     for window in (3, 9, 15):
-        pad = window // 2
-        squares = torch.nn.functional.unfold(
-            torch.nn.functional.pad(x[:, None].float(), (pad,) * 4, mode="replicate"), window)
-        torch_median = squares.median(dim=1).values.reshape(x.shape).to(torch.uint8)
-        assert torch.equal(square_median_u8(x, window), torch_median)
+        assert torch.equal(square_median_u8(x, window), square_median_torch(x, window))
+    corner = x[1, :2, :2].float()    # window 3 at (0, 0): the replicated border counts
+    nine = torch.stack([corner[0, 0]] * 4 + [corner[0, 1]] * 2 + [corner[1, 0]] * 2
+                       + [corner[1, 1]])
+    assert square_median_torch(x, 3)[1, 0, 0].item() == nine.median().item()
+
+
+def test_the_noise_measure_ignores_invalid_pixels_and_follows_each_means_own_count() -> None:
+    """A floor 40 % of whose pixels are invalid in stripes measures the noise of its valid
+    ones (invalid pixels read as zero residuals would pull the median down by half), and a
+    pixel whose mean has 4 valid pixels instead of 9 gets 3/2 the deviation."""
+    gen = torch.Generator().manual_seed(3)
+    noisy = 0.03 * torch.randn(1, 60, 80, generator=gen)
+    full = torch.ones_like(noisy, dtype=torch.bool)
+    striped = full.clone()
+    striped[:, :, 0::5] = striped[:, :, 1::5] = False
+    whole = local_noise_sd(noisy, valid_mean(noisy, full, 3), full, 15, 3)
+    holed = local_noise_sd(noisy, valid_mean(noisy, striped, 3), striped, 15, 3)
+    assert whole[:, 20:40, 20:60].median().item() == pytest.approx(0.01, rel=0.15)
+    stripes_sd = holed[striped][holed[striped] > 0]      # pixels with 6 of 9 valid: 0.03/√6
+    assert stripes_sd.median().item() == pytest.approx(0.03 / 6 ** 0.5, rel=0.2)
+    sparse = full.clone()
+    sparse[:, 29, 39:42] = sparse[:, 30:32, 39] = False    # (30, 40): 4 of its 9 valid
+    sd = local_noise_sd(noisy, valid_mean(noisy, sparse, 3), sparse, 15, 3)
+    assert (sd[0, 30, 40] / sd[0, 30, 20]).item() == pytest.approx(1.5, rel=0.2)
 
 
 def test_the_relief_noise_sds_are_stored_checked_and_the_same_on_both_paths() -> None:
