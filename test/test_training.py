@@ -79,7 +79,7 @@ def test_train_config_validation_names_the_field():
         TrainConfig(max_width=4).validate()
     with pytest.raises(ConfigError, match="train.near_boundary_weight"):
         TrainConfig(near_boundary_weight=0.5).validate()
-    for bad in (8, 1, 65, 15.0, True):
+    for bad in (8, 1, 65, 15.0, True, 0.0, False):
         with pytest.raises(ConfigError, match="train.relief_window_px"):
             TrainConfig(relief_window_px=bad).validate()
     for good in (0, 3, 15):
@@ -100,6 +100,8 @@ def test_train_config_validation_names_the_field():
         TrainConfig(relief_window_px=15, relief_smoothing_px=3, relief_noise_sds=11.0).validate()
     assert TrainConfig(relief_window_px=15, relief_smoothing_px=3,
                        relief_noise_sds=5.0).validate().relief_noise_sds == 5.0
+    for off in (0, 0.0):
+        assert TrainConfig(relief_noise_sds=off).validate().relief_noise_sds == off
     assert smooth.relief_smoothing_px == 3
     with pytest.raises(ConfigError, match="train.full_size_head = 8 needs space_to_depth 2"):
         TrainConfig(full_size_head=8).validate()

@@ -676,11 +676,13 @@ def load_json(path: Path) -> Any:
 LATER_NETWORK_OPTIONS = {"space_to_depth": 1, "full_size_head": 0}
 
 
-def _check_relief_option(owner: str, name: str, value: Any, check, relief_window_px: int | None
-                         ) -> None:
-    """A relief option: 0 (off) or what ``check`` (model.check_relief_*) accepts; the options
-    that shape the relief channel (``relief_window_px`` given) need that channel on."""
-    if value == 0 and type(value) in (int, float):  # not False
+def _check_relief_option(owner: str, name: str, value: Any, check, relief_window_px: int | None,
+                         off: int | float = 0) -> None:
+    """A relief option: ``off`` or what ``check`` (model.check_relief_*) accepts; the options
+    that shape the relief channel (``relief_window_px`` given) need that channel on. A window
+    is off at the integer 0 only (not 0.0, not False), a float option at 0 or 0.0."""
+    off_types = (int, float) if isinstance(off, float) else (int,)
+    if value == off and type(value) in off_types:
         return
     try:
         check(value)
@@ -820,7 +822,7 @@ class TrainConfig:
         _check_relief_option(o, "relief_base_px", self.relief_base_px,
                              check_relief_base, self.relief_window_px)
         _check_relief_option(o, "relief_noise_sds", self.relief_noise_sds,
-                             check_relief_noise_sds, self.relief_window_px)
+                             check_relief_noise_sds, self.relief_window_px, off=0.0)
         if self.relief_noise_sds and not self.relief_smoothing_px:
             raise ConfigError(f"{o}.relief_noise_sds = {self.relief_noise_sds} needs "
                               "relief_smoothing_px: the noise is that of the heights' mean")
