@@ -386,8 +386,8 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
     measured by a median, which an object's edges barely move). A pixel whose ``smoothing``
     square is not mostly valid reads no relief and holds up no surface (``majority_valid``):
     there the mean averages little and an isolated pixel, its own mean, shows no residual for
-    the median to measure, so the isolated pixels where
-    a far floor fades out of range read their raw noise as relief (found at 3x noise)."""
+    the median to measure, so where a far floor fades out of range its isolated pixels read
+    their raw noise as relief (found at 3x noise)."""
     raw = height.float()
     if noise_sds:
         valid = majority_valid(valid, smoothing)
