@@ -25,6 +25,12 @@ fresh noise each frame: the node keeps its plane, ``reuse_floor_fit``).
 * throughput: 30 Hz for ``--seconds``: fraction answered, node dropped_frames (newest-frame
   policy), frames lost before the node, answer lag and backlog, node CPU and RSS over time.
 
+``--reference REV`` puts outcome_node as it was at git revision REV, with the model it shipped,
+in the floor's place (checked out into a temporary worktree, run with this environment's
+packages), so a change to the node is measured against its past in the same run, frame by
+frame: latency and CPU time per frame as ratios to the reference. It writes the
+``node_reference`` section instead of ``node``.
+
 Every scenario gets its own random ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 Writes the ``node`` section of bench/results.json.
 """
@@ -106,8 +112,24 @@ def floor_command(qos: str) -> list[str]:
             "-r", "__ns:=/floor"]
 
 
+def reference_worktree(revision: str, tmp: Path) -> Path:
+    """outcome_node's code and shipped model at ``revision``, checked out under ``tmp``."""
+    where = tmp / "reference"
+    subprocess.run(["git", "worktree", "add", "--detach", str(where), revision], cwd=REPO,
+                   check=True, capture_output=True, text=True)
+    return where
+
+
+def reference_command(worktree: Path, qos: str) -> list[str]:
+    """The node of ``worktree`` with its own shipped model, in the floor's namespace."""
+    model = worktree / "task_outcome_ros" / "models" / "outcome_fcn.pt"
+    return [sys.executable, "-m", "task_outcome_ros.node", "--ros-args", "-r", "__ns:=/floor",
+            "-p", f"model_path:={model}", "-p", f"qos:={qos}"]
+
+
 def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds: float,
-                 images: int, tmp: Path, timeout: float, static: bool = False) -> dict:
+                 images: int, tmp: Path, timeout: float, static: bool = False,
+                 reference: Path | None = None) -> dict:
     name = f"{'shm' if shm else 'noshm'}_{qos}{'_static' if static else ''}"
     domain_id = random.randint(1, 200)
     env = scenario_env(domain_id, shm)
@@ -122,8 +144,14 @@ def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds:
                 env=env, stdout=log, stderr=subprocess.STDOUT)
             client_args = ["--node-pid", str(node.pid)]
             if latency_frames:  # the floor, measured in the same run, frame by frame
-                floor = subprocess.Popen(floor_command(qos), env=env, stdout=flog,
-                                         stderr=subprocess.STDOUT)
+                if reference is None:
+                    floor = subprocess.Popen(floor_command(qos), env=env, stdout=flog,
+                                             stderr=subprocess.STDOUT)
+                else:  # its imports must come from the worktree, not this checkout
+                    floor = subprocess.Popen(
+                        reference_command(reference, qos), stdout=flog,
+                        stderr=subprocess.STDOUT, cwd=reference,
+                        env={**env, "PYTHONPATH": str(reference)})
                 client_args += ["--floor-pid", str(floor.pid)]
             client = subprocess.Popen(
                 [sys.executable, str(BENCH / "_node_client.py"), *client_args,
@@ -150,11 +178,19 @@ def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds:
                   node_exit_code=node.returncode, load_average_before=load0,
                   load_average_after=load_average(),
                   host_udp_datagrams_during={k: udp1[k] - udp0[k] for k in udp0})
-    ready = [line for line in log_text.splitlines() if "ready:" in line]
-    result["node_ready_line"] = ready[0].split("ready:", 1)[1].strip() if ready else None
+    result["node_ready_line"] = ready_line(log_text)
+    if reference is not None:  # worktree paths say which revision, not where it was
+        line = ready_line(floor_log.read_text())
+        result["reference_ready_line"] = line and line.replace(f"{reference}/", "")
     if not result.get("ok"):
         result["node_log_tail"] = log_text[-2000:]
     return result
+
+
+def ready_line(log_text: str) -> str | None:
+    """What outcome_node said it loaded ("... ready: <this>"), from its log."""
+    ready = [line for line in log_text.splitlines() if "ready:" in line]
+    return ready[0].split("ready:", 1)[1].strip() if ready else None
 
 
 def summary(s: dict) -> dict:
@@ -197,7 +233,14 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="10 s throughput, 50 latency frames")
     parser.add_argument("--only", choices=SCENARIOS, nargs="+", default=list(SCENARIOS),
                         help="run these scenarios only (results.json is left unchanged)")
+    parser.add_argument("--reference", metavar="REV",
+                        help="measure against outcome_node at this git revision (its own "
+                             "shipped model) instead of the do-nothing floor, in the "
+                             "best-effort scenarios' latency phase only")
     args = parser.parse_args()
+    if args.reference:
+        reference_main(args)
+        return
     if args.quick:
         args.seconds, args.latency_frames, args.images = 10.0, 50, 10
     command = "python bench/node.py " + " ".join(sys.argv[1:])
@@ -240,6 +283,63 @@ def main() -> None:
         "summary": {s["scenario"]: summary(s) for s in scenarios},
         "scenarios": {s["scenario"]: s for s in scenarios},
     }, command)
+
+
+def reference_main(args: argparse.Namespace) -> None:
+    """The latency phase of the best-effort scenarios against outcome_node at a past revision."""
+    revision = subprocess.run(["git", "rev-parse", "--short=12", args.reference], cwd=REPO,
+                              check=True, capture_output=True, text=True).stdout.strip()
+    command = "python bench/node.py " + " ".join(sys.argv[1:])
+    names = [n for n in args.only if SCENARIOS[n][0] == "sensor_data"]
+    load_start, t0, scenarios = load_average(), time.monotonic(), {}
+    with tempfile.TemporaryDirectory(prefix="bench_node_") as tmp:
+        model, model_desc = prepare_model(Path(tmp))
+        worktree = reference_worktree(revision, Path(tmp))
+        try:
+            for name in names:
+                qos, shm, static = SCENARIOS[name]
+                print(f"[bench/node] {name} against {revision} ...", flush=True)
+                s = run_scenario(model, qos, shm, args.latency_frames, 0.0, args.images,
+                                 Path(tmp), 240 + args.latency_frames, static, worktree)
+                scenarios[name] = against_reference(s)
+                print(f"[bench/node]   {json.dumps(scenarios[name]['summary'])}", flush=True)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=REPO,
+                           capture_output=True)
+    if not all(s.get("ok") for s in scenarios.values()):
+        sys.exit("bench/node.py: a scenario failed; results.json left unchanged")
+    record("node_reference", {
+        "model": model_desc, "reference_revision": revision,
+        "reference": "outcome_node of the reference revision with the model it shipped, "
+                     "default parameters + model_path, qos; the client subscribes to labels "
+                     "and status only",
+        "wall_s": round(time.monotonic() - t0, 1),
+        "load_average_1_5_15": {"start": load_start, "end": load_average()},
+        "scenarios": scenarios}, command)
+
+
+def against_reference(s: dict) -> dict:
+    """A scenario's latency phase with the floor's figures renamed for what they measured."""
+    lat = dict(s.get("latency") or {})
+    ref = lat.pop("floor", None) or {}
+    lat.pop("ratio_to_floor", None)
+    now, then = lat.get("end_to_end_ms") or {}, ref.get("end_to_end_ms") or {}
+    ratios = {f"latency_{q}": round(now[q] / then[q], 2) for q in ("p50", "p95")
+              if now.get(q) and then.get(q)}
+    if lat.get("cpu_ms_per_frame") and ref.get("cpu_ms_per_frame"):
+        ratios["cpu_per_frame"] = round(lat["cpu_ms_per_frame"] / ref["cpu_ms_per_frame"], 2)
+    summary_row = {"latency_p50_ms": now.get("p50"), "reference_p50_ms": then.get("p50"),
+                   "cpu_ms_per_frame": lat.get("cpu_ms_per_frame"),
+                   "reference_cpu_ms_per_frame": ref.get("cpu_ms_per_frame"),
+                   "unanswered": lat.get("unanswered"),
+                   "reference_unanswered": ref.get("unanswered"), "ratios": ratios}
+    return {"ok": bool(s.get("ok") and ratios.get("latency_p50")), "summary": summary_row,
+            "latency": lat, "reference_latency": ref,
+            "node_ready_line": s.get("node_ready_line"),
+            "reference_ready_line": s.get("reference_ready_line"),
+            "load_average_before": s.get("load_average_before"),
+            "load_average_after": s.get("load_average_after"),
+            "node_log_tail": s.get("node_log_tail")}
 
 
 if __name__ == "__main__":

@@ -102,3 +102,23 @@ def test_soak_figures_measure_slope_and_windows():
     assert not figures["answered_ok"]
     assert figures["lag_p95_worst_over_best"] == pytest.approx(
         wins[1]["lag_p95_ms"] / wins[0]["lag_p95_ms"], abs=0.01)
+
+
+@pytest.mark.unit
+def test_a_reference_run_reports_ratios_to_the_past_node_not_to_a_floor():
+    node = _bench_module("node")
+    scenario = {"ok": True, "node_ready_line": "model m", "reference_ready_line": "model r",
+                "latency": {"end_to_end_ms": {"p50": 10.0, "p95": 12.0},
+                            "cpu_ms_per_frame": 11.0, "unanswered": 0,
+                            "floor": {"end_to_end_ms": {"p50": 20.0, "p95": 30.0},
+                                      "cpu_ms_per_frame": 22.0, "unanswered": 1},
+                            "ratio_to_floor": {"p50": 0.5, "p95": 0.4}}}
+    out = node.against_reference(scenario)
+    assert out["ok"]
+    assert out["summary"]["ratios"] == {"latency_p50": 0.5, "latency_p95": 0.4,
+                                        "cpu_per_frame": 0.5}
+    assert "floor" not in out["latency"] and "ratio_to_floor" not in out["latency"]
+    assert out["reference_latency"]["unanswered"] == 1
+    # A reference that never answered gives no ratio, and the run is not recorded as ok.
+    scenario["latency"]["floor"]["end_to_end_ms"] = None
+    assert not node.against_reference(scenario)["ok"]
