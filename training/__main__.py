@@ -382,6 +382,36 @@ def cmd_compare(args) -> None:
     run_compare(args.a, args.b)
 
 
+def add_real_frames_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", default=None,
+                   help="checkpoint path or shipped task name (default: the default model)")
+    p.add_argument("--frames", default="arc2017",
+                   help="a bundled frame set (training/real_frames/NAME) or a folder with "
+                        "frames.yaml (default arc2017: real totes)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="folder for real_frames.json and real_frames.png")
+
+
+def cmd_real_frames(args) -> None:
+    from training.real import run_real_frames, wrong_outcomes
+
+    report = run_real_frames(args.model, args.frames, args.out)
+    for row in report["rows"]:
+        verdict = ("outside the envelope: " + "; ".join(row["outside_envelope"])
+                   if row["outside_envelope"] else "inside the envelope")
+        if "correct" in row:
+            invented, missed = wrong_outcomes(row)
+            verdict += (", right" if row["correct"] else
+                        f", wrong (invented {invented or '-'}, missed {missed or '-'})")
+        print(f"real-frames {row['frame']}: {', '.join(row['predicted']) or 'nothing'} "
+              f"({verdict})")
+    score = (f"image all-correct {report['image_all_correct']:.3f}, " if report["scored"]
+             else f"not scored (a {report['model_task']} model on {report['frame_set_task']} "
+                  f"frames), ")
+    print(f"real-frames: {report['frames']} frames of {report['frame_set']}, {score}"
+          f"{report['inside_envelope']} inside the envelope -> {args.out / 'real_frames.json'}")
+
+
 def cmd_demo(args) -> int:
     from training.demo import demo_main
 
@@ -409,6 +439,8 @@ COMMANDS = {
     "independent": (cmd_independent, "an evaluation set made by pybullet ray tests and a "
                                      "separately written noise model"),
     "compare": (cmd_compare, "two models' results on the same images, paired (McNemar)"),
+    "real-frames": (cmd_real_frames, "what a model says on real depth frames (hand-labelled "
+                                     "outcomes, envelope verdicts, contact sheet)"),
     "demo": (cmd_demo, "a small simulated bag through the live outcome_node, scored"),
 }
 
@@ -437,6 +469,9 @@ def build_parser() -> argparse.ArgumentParser:
             continue
         if name == "compare":
             add_compare_args(p)
+            continue
+        if name == "real-frames":
+            add_real_frames_args(p)
             continue
         add_dataset_args(p)
         if name in ("train", "run"):
