@@ -130,6 +130,17 @@ class SceneConfig:
     place_edge_offset: tuple[float, float] = (-0.05, 0.10)   # m
     place_gap: tuple[float, float] = (0.0, 0.05)             # m
     place_tilt_deg: tuple[float, float] = (0.0, 0.0)
+    # Scenery nobody placed, drawn per frame at render time (training/scenery.py) from a stream
+    # of its own, so a spec without it renders what it did before: in ``neighbour_share`` of
+    # the frames, ``neighbour_count`` copies of the episode's fixture stand beside it in a row,
+    # ``neighbour_gap`` apart (m, outer edge to outer edge), each holding ``neighbour_contents``
+    # boxes of ``object_edge``. All of it is background: a real cell's next tote and what it
+    # holds are not an outcome of this place, and without it in training anything beside the
+    # fixture can only be a fallen object.
+    neighbour_share: float = 0.0
+    neighbour_count: tuple[int, int] = (1, 2)
+    neighbour_gap: tuple[float, float] = (0.0, 0.15)
+    neighbour_contents: tuple[int, int] = (0, 4)
     # Integration and the end of an episode.
     timestep: float = 1.0 / 240.0
     solver_iterations: int = 10
@@ -210,6 +221,7 @@ class SceneConfig:
         if self.release_orientation not in ("random", "upright"):
             raise ConfigError(f"{o}.release_orientation = {self.release_orientation!r}: "
                               "expected one of ('random', 'upright')")
+        self._validate_neighbours(o)
         _check_range(o, "timestep", self.timestep, 1e-4, 0.05)
         _check_int(o, "solver_iterations", self.solver_iterations, 1, 1000)
         _check_range(o, "max_episode_time", self.max_episode_time, 0.5, 120.0)
@@ -230,6 +242,16 @@ class SceneConfig:
             raise ConfigError(f"{o}.place_edge_offset = {list(self.place_edge_offset)}: the "
                               f"deepest placement must stay on the shallowest board "
                               f"(board_depth {list(self.board_depth)})")
+
+    def _validate_neighbours(self, o: str) -> None:
+        _check_range(o, "neighbour_share", self.neighbour_share, 0.0, 1.0)
+        _check_interval(o, "neighbour_gap", self.neighbour_gap, 0.0, 2.0)
+        for name, bounds in (("neighbour_count", (1, 4)), ("neighbour_contents", (0, 12))):
+            pair = getattr(self, name)
+            if not isinstance(pair, (tuple, list)) or len(pair) != 2:
+                raise ConfigError(f"{o}.{name} must be a [min, max] pair, got {pair!r}")
+            _check_int(o, f"{name}[0]", pair[0], *bounds)
+            _check_int(o, f"{name}[1]", pair[1], pair[0], bounds[1])
 
     def _validate_shapes(self, o: str) -> None:
         names = [name for name, _ in self.shape_weights]

@@ -36,6 +36,7 @@ from training.config import (
 from training.fixture import PlacedFixture, _uniform, episode_fixture
 from training.geometry import quat_to_matrix
 from training.noise import apply_kinect_noise
+from training.scenery import draw_neighbours
 from training.seeding import episode_rng, episode_seed
 from training.tof import apply_tof_noise
 
@@ -270,14 +271,25 @@ def _cast_cylinder(cyl: SceneBox, camera: Camera, rays: np.ndarray, norm: np.nda
     _write_hits(cyl, rect, np.isfinite(t_hit), t_hit, n_dot, norm, depth, labels, cosine)
 
 
+def episode_scene(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
+                  table: LabelTable) -> tuple[list[SceneBox], dict | None]:
+    """Every solid of one frame: the episode's (``scene_boxes``) and the scenery drawn for it
+    (background), with the record of what scenery was drawn (None: none)."""
+    boxes = scene_boxes(episode, outcomes, cfg.scene, table)
+    scenery, drawn = draw_neighbours(episode_fixture(episode, cfg.scene), cfg.scene,
+                                     episode["objects"],
+                                     episode_rng(seed, episode["episode"], "scenery"))
+    return boxes + [SceneBox(s.half, s.centre, s.rotation, BACKGROUND) for s in scenery], drawn
+
+
 def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
                    table: LabelTable) -> dict:
     """Camera draw, clean render and noise for one episode; returns arrays and the record."""
     index = episode["episode"]
     fixture = episode_fixture(episode, cfg.scene)
     camera, draws = draw_camera(cfg.camera, fixture, episode_rng(seed, index, "render"))
-    clean, labels, cosine = render(scene_boxes(episode, outcomes, cfg.scene, table),
-                                   fixture.room_floor_z, camera)
+    boxes, drawn = episode_scene(episode, outcomes, cfg, seed, table)
+    clean, labels, cosine = render(boxes, fixture.room_floor_z, camera)
     noisy, noisy_labels, sensor = apply_sensor(clean, labels, cosine, camera, cfg, seed, index)
     record = {
         "episode": index,
@@ -291,6 +303,8 @@ def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
     }
     if sensor is not None:
         record["sensor"] = sensor
+    if drawn is not None:
+        record["scenery"] = drawn
     if cfg.camera.info_differs:
         record["camera_info"] = draw_camera_info(camera, cfg.camera,
                                                  episode_rng(seed, index, "camera_info"))

@@ -12,10 +12,11 @@ import numpy as np
 # "fixture" holds the per-episode draws a spec added (footprint, wall height, table, shapes),
 # "sensor" the per-frame sensor parameters, "sensor_model" which sensor model a frame gets,
 # "camera_info" the calibration error of what the camera reports: streams of their own, so
-# a spec with fixed values draws exactly what it drew before.
+# a spec with fixed values draws exactly what it drew before; "scenery" what stands around
+# the fixture that nobody placed.
 STAGE_STREAMS = {"simulate": 1, "render": 2, "noise": 3, "split": 4, "augment": 5,
                  "fixture": 6, "sensor": 7, "robustness": 8, "sensor_model": 9,
-                 "camera_info": 10}
+                 "camera_info": 10, "scenery": 11}
 
 
 def episode_seed(run_seed: int, episode: int, stage: str) -> list[int]:
