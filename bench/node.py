@@ -50,7 +50,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import record  # noqa: E402
+from common import record, sha256  # noqa: E402
 from inference import load_average, prepare_model  # noqa: E402
 
 BENCH = Path(__file__).resolve().parent
@@ -151,7 +151,8 @@ def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds:
                     floor = subprocess.Popen(
                         reference_command(reference, qos), stdout=flog,
                         stderr=subprocess.STDOUT, cwd=reference,
-                        env={**env, "PYTHONPATH": str(reference)})
+                        env={**env, "PYTHONPATH": os.pathsep.join(
+                            p for p in (str(reference), env.get("PYTHONPATH")) if p)})
                 client_args += ["--floor-pid", str(floor.pid)]
             client = subprocess.Popen(
                 [sys.executable, str(BENCH / "_node_client.py"), *client_args,
@@ -238,9 +239,6 @@ def main() -> None:
                              "shipped model) instead of the do-nothing floor, in the "
                              "best-effort scenarios' latency phase only")
     args = parser.parse_args()
-    if args.reference:
-        reference_main(args)
-        return
     if args.quick:
         args.seconds, args.latency_frames, args.images = 10.0, 50, 10
     command = "python bench/node.py " + " ".join(sys.argv[1:])
@@ -249,6 +247,9 @@ def main() -> None:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_term)
+    if args.reference:
+        reference_main(args)
+        return
     load_start = load_average()
     scenarios = []
     t0 = time.monotonic()
@@ -287,14 +288,24 @@ def main() -> None:
 
 def reference_main(args: argparse.Namespace) -> None:
     """The latency phase of the best-effort scenarios against outcome_node at a past revision."""
-    revision = subprocess.run(["git", "rev-parse", "--short=12", args.reference], cwd=REPO,
-                              check=True, capture_output=True, text=True).stdout.strip()
+    found = subprocess.run(["git", "rev-parse", "--verify", "--short=12",
+                            f"{args.reference}^{{commit}}"], cwd=REPO, capture_output=True,
+                           text=True)
+    if found.returncode:
+        sys.exit(f"bench/node.py: --reference {args.reference}: not a commit of this "
+                 f"repository ({found.stderr.strip()})")
+    revision = found.stdout.strip()
     command = "python bench/node.py " + " ".join(sys.argv[1:])
-    names = [n for n in args.only if SCENARIOS[n][0] == "sensor_data"]
+    every = [n for n in SCENARIOS if SCENARIOS[n][0] == "sensor_data"]
+    names = [n for n in args.only if n in every]
+    if not names:
+        sys.exit(f"bench/node.py: --reference measures the best-effort scenarios' latency; "
+                 f"--only chose none of {every}")
     load_start, t0, scenarios = load_average(), time.monotonic(), {}
     with tempfile.TemporaryDirectory(prefix="bench_node_") as tmp:
         model, model_desc = prepare_model(Path(tmp))
         worktree = reference_worktree(revision, Path(tmp))
+        reference_sha = sha256(worktree / "task_outcome_ros" / "models" / "outcome_fcn.pt")
         try:
             for name in names:
                 qos, shm, static = SCENARIOS[name]
@@ -306,10 +317,17 @@ def reference_main(args: argparse.Namespace) -> None:
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=REPO,
                            capture_output=True)
-    if not all(s.get("ok") for s in scenarios.values()):
-        sys.exit("bench/node.py: a scenario failed; results.json left unchanged")
+    failed = [name for name, s in scenarios.items() if not s.get("ok")]
+    if failed:
+        for name in failed:
+            print(f"[bench/node] {name} failed:\n{scenarios[name].get('node_log_tail') or ''}",
+                  file=sys.stderr)
+        sys.exit(f"bench/node.py: {', '.join(failed)} failed; results.json left unchanged")
+    if set(names) != set(every):  # a diagnosis run: printed, not recorded
+        return
     record("node_reference", {
         "model": model_desc, "reference_revision": revision,
+        "reference_model_sha256": reference_sha,
         "reference": "outcome_node of the reference revision with the model it shipped, "
                      "default parameters + model_path, qos; the client subscribes to labels "
                      "and status only",

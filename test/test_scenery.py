@@ -47,12 +47,18 @@ def test_neighbours_stand_beside_the_fixture_in_a_row_with_their_contents():
         # Edge to edge 5 cm apart along one axis, nearly aligned along the other.
         assert offset[axis] == pytest.approx(2 * half[axis] + 0.05, abs=1e-3)
         assert offset[1 - axis] <= 0.1 * half[1 - axis] + 1e-3
-    # The contents rest inside a neighbour's walls, on its floor.
+    # Each neighbour: the fixture's solids, then its contents, resting on its floor inside
+    # its walls.
     region = fixture.region()
-    for solid in solids:
-        if solid.half[2] < fixture.wall_height / 2 - 1e-6 and solid.half[0] < region.half_x:
+    walls = len(fixture.solid_boxes())
+    for k, n in enumerate(drawn["neighbours"]):
+        contents = solids[k * per_neighbour + walls:(k + 1) * per_neighbour]
+        assert len(contents) == 3
+        for solid in contents:
             local = fixture.to_frame(solid.centre)
             assert local[2] == pytest.approx(region.bottom + solid.half[2], abs=1e-6)
+            inside = np.abs(local[:2] - np.array(n["offset"]))
+            assert np.all(inside + np.hypot(*solid.half[:2]) <= [region.half_x, region.half_y])
 
 
 def test_no_neighbour_stands_where_a_simulated_object_came_to_rest():
@@ -98,9 +104,10 @@ def test_a_rendered_neighbour_only_ever_adds_background():
 @pytest.mark.parametrize("fields, error", [
     ({"neighbour_share": 1.5}, "neighbour_share"),
     ({"neighbour_count": (0, 2)}, r"neighbour_count\[0\]"),
-    ({"neighbour_count": (2, 1)}, r"neighbour_count\[1\]"),
+    ({"neighbour_count": (2, 1)}, "min must not exceed max"),
     ({"neighbour_contents": (0, 2.5)}, "whole number"),
     ({"neighbour_gap": (0.2, 0.1)}, "min must not exceed max"),
+    ({"neighbour_share": 0.5, "fixture": "board"}, "copies of an open box"),
 ])
 def test_bad_neighbour_fields_are_refused(fields, error):
     with pytest.raises(ConfigError, match=error):

@@ -132,9 +132,10 @@ class SceneConfig:
     place_tilt_deg: tuple[float, float] = (0.0, 0.0)
     # Scenery nobody placed, drawn per frame at render time (training/scenery.py) from a stream
     # of its own, so a spec without it renders what it did before: in ``neighbour_share`` of
-    # the frames, ``neighbour_count`` copies of the episode's fixture stand beside it in a row,
-    # ``neighbour_gap`` apart (m, outer edge to outer edge), each holding ``neighbour_contents``
-    # boxes of ``object_edge``. All of it is background: a real cell's next tote and what it
+    # the frames, ``neighbour_count`` copies of the episode's open box stand beside it, each on
+    # one of its four sides (a row, or a corner of one) at its base height, on the table or
+    # past its edge as on a rack, ``neighbour_gap`` apart (m, outer edge to outer edge), each
+    # holding ``neighbour_contents`` boxes of ``object_edge``. All of it is background: a real cell's next tote and what it
     # holds are not an outcome of this place, and without it in training anything beside the
     # fixture can only be a fallen object.
     neighbour_share: float = 0.0
@@ -250,8 +251,14 @@ class SceneConfig:
             pair = getattr(self, name)
             if not isinstance(pair, (tuple, list)) or len(pair) != 2:
                 raise ConfigError(f"{o}.{name} must be a [min, max] pair, got {pair!r}")
-            _check_int(o, f"{name}[0]", pair[0], *bounds)
-            _check_int(o, f"{name}[1]", pair[1], pair[0], bounds[1])
+            for i in (0, 1):
+                _check_int(o, f"{name}[{i}]", pair[i], *bounds)
+            if pair[0] > pair[1]:
+                raise ConfigError(f"{o}.{name} = {list(pair)}: min must not exceed max")
+        if self.neighbour_share > 0 and self.fixture != "open_box":
+            raise ConfigError(f"{o}.neighbour_share = {self.neighbour_share}: neighbours are "
+                              f"copies of an open box beside it; a {self.fixture}'s would stand "
+                              "in its wall or where objects fall")
 
     def _validate_shapes(self, o: str) -> None:
         names = [name for name, _ in self.shape_weights]

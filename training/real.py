@@ -7,7 +7,8 @@ and the outcomes truly present, written by hand at the image level (no pixel lab
 
 For each frame the report records what the model calls present, whether its envelope check
 calls the frame outside what it was trained on, and, when the model's task is the frame
-set's, whether the image is right by the paper's rule (the outcomes present match). A model
+set's, whether the image is right: the outcomes it calls present are exactly the truth's (the
+image-level metric of Bowkett et al., as ``evaluate`` scores rendered images). A model
 of another task is not scored; the only right answer it can give is "outside my envelope".
 It writes ``real_frames.json`` and a contact sheet, ``real_frames.png`` (depth | overlay).
 """
