@@ -135,9 +135,9 @@ class SceneConfig:
     # the frames, ``neighbour_count`` copies of the episode's open box stand beside it, each on
     # one of its four sides (a row, or a corner of one) at its base height, on the table or
     # past its edge as on a rack, ``neighbour_gap`` apart (m, outer edge to outer edge), each
-    # holding ``neighbour_contents`` boxes of ``object_edge``. All of it is background: a real cell's next tote and what it
-    # holds are not an outcome of this place, and without it in training anything beside the
-    # fixture can only be a fallen object.
+    # holding ``neighbour_contents`` boxes of ``object_edge``. All of it is background: a real
+    # cell's next tote and what it holds are not an outcome of this place, and without it in
+    # training anything beside the fixture can only be a fallen object.
     neighbour_share: float = 0.0
     neighbour_count: tuple[int, int] = (1, 2)
     neighbour_gap: tuple[float, float] = (0.0, 0.15)

@@ -211,7 +211,7 @@ def plot_frames(path: Path, report: dict, images: list, table) -> None:
             ax.axis("off")
     fig.suptitle(f"{report['model']} ({report['model_task']}) on {report['frame_set']}",
                  fontsize=10)
-    fig.tight_layout(rect=(0, 0, 1, 1 - 0.3 / len(images)))  # room for the title
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / fig.get_figheight()))  # 0.35 in for the title
     fig.savefig(path)
     plt.close(fig)
 

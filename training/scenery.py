@@ -2,10 +2,11 @@
 
 Real cells put totes and bins in rows and racks, and the camera that watches one sees its
 neighbours and what they hold. Each neighbour takes one of the fixture's four sides (so two
-make a row or a corner), at the fixture's base height, on the table or past its edge. A spec's ``neighbour_*`` fields (``SceneConfig``) draw that per frame, at
-render time, from the episode's own "scenery" stream: the physics never sees it, so a
-neighbour is only drawn on a side where no simulated object came to rest (one that fell
-there would have hit it). Every solid here is background.
+make a row or a corner), at the fixture's base height, on the table or past its edge. A
+spec's ``neighbour_*`` fields (``SceneConfig``) draw that per frame, at render time, from the
+episode's own "scenery" stream: the physics never sees it, so a neighbour is only drawn on a
+side where no simulated object came to rest (one that fell there would have hit it). Every
+solid here is background.
 """
 
 from __future__ import annotations
