@@ -23,11 +23,11 @@ from typing import Any
 import numpy as np
 
 from task_outcome_ros.camera import Intrinsics
+from task_outcome_ros.depth import sanitize_depth
 from training.config import ConfigError
 
 FRAMES_FILE = "frames.yaml"
 BUNDLED = Path(__file__).resolve().parent / "real_frames"
-DEFAULT_SET = BUNDLED / "arc2017"
 INTRINSIC_KEYS = ("fx", "fy", "cx", "cy")
 
 
@@ -123,8 +123,7 @@ def read_depth(frame: RealFrame, scale: float) -> np.ndarray:
         depth = raw.astype(np.float32) * np.float32(scale)
     if depth.ndim != 2:
         raise ConfigError(f"{frame.depth_path}: depth must be one channel, got {depth.shape}")
-    depth[~(depth > 0)] = np.nan
-    return depth
+    return sanitize_depth(depth, copy=False)   # the node's own rule for "no depth"
 
 
 def check_model(model: str | Path | None, frame_set: FrameSet) -> tuple[dict, list, Any]:
