@@ -115,7 +115,7 @@ def test_a_table_edge_margin_puts_the_fixture_anywhere_on_a_drawn_table():
         table = fixture.table
         # The table's centre in the fixture's frame: the table turns with the fixture.
         centre = fixture.to_frame(np.array([table.x, table.y, fixture.base_z]))[:2]
-        outer = np.array([fixture.half_x, fixture.half_y]) + fixture.wall_thickness
+        outer = fixture.outer_half_footprint()   # walls, their lean and the lip
         gap = np.array([table.half_x, table.half_y]) - np.abs(centre) - outer
         gaps.append(gap.min())
         sizes.append((2 * table.half_x, 2 * table.half_y))

@@ -14,7 +14,7 @@ from training.discover import label_table
 from training.fixture import first_fixture
 from training.render import draw_camera, episode_scene, render, render_episode
 from training.scene import load_scene
-from training.scenery import draw_neighbours, footprint_half
+from training.scenery import draw_neighbours
 
 pytestmark = pytest.mark.unit
 
@@ -36,7 +36,7 @@ def test_neighbours_stand_beside_the_fixture_in_a_row_with_their_contents():
     scene = _scene(neighbour_share=1.0, neighbour_count=(2, 2), neighbour_gap=(0.05, 0.05),
                    neighbour_contents=(3, 3))
     fixture = first_fixture(scene)
-    half = footprint_half(fixture)
+    half = fixture.outer_half_footprint()
     solids, drawn = draw_neighbours(fixture, scene, [], np.random.default_rng(3))
     assert len(drawn["neighbours"]) == 2
     per_neighbour = len(fixture.solid_boxes()) + 3
@@ -64,7 +64,7 @@ def test_neighbours_stand_beside_the_fixture_in_a_row_with_their_contents():
 def test_no_neighbour_stands_where_a_simulated_object_came_to_rest():
     scene = _scene(neighbour_share=1.0, neighbour_count=(4, 4), neighbour_gap=(0.0, 0.0))
     fixture = first_fixture(scene)
-    half = footprint_half(fixture)
+    half = fixture.outer_half_footprint()
     # One object on the table just beyond the +x wall: that side must stay empty.
     beside = {"position": [float(half[0] + 0.1), 0.0, 0.05], "size": [0.06, 0.06, 0.06]}
     for seed in range(20):
@@ -107,7 +107,8 @@ def test_a_rendered_neighbour_only_ever_adds_background():
     ({"neighbour_count": (2, 1)}, "min must not exceed max"),
     ({"neighbour_contents": (0, 2.5)}, "whole number"),
     ({"neighbour_gap": (0.2, 0.1)}, "min must not exceed max"),
-    ({"neighbour_share": 0.5, "fixture": "board"}, "copies of an open box"),
+    ({"neighbour_share": 0.5, "fixture": "board", "wall_flare_deg": (0.0, 0.0),
+      "lip_width": (0.0, 0.0), "handle_hole_share": 0.0}, "copies of an open box"),
 ])
 def test_bad_neighbour_fields_are_refused(fields, error):
     with pytest.raises(ConfigError, match=error):

@@ -209,6 +209,8 @@ def test_the_default_and_older_tote_tasks_draw_what_they_always_drew(spec, tmp_p
     if spec == "tote-0.8.0":  # a spec with a fixed (x, y) table and table_offset still loads
         data = yaml.safe_load((SCENES_DIR / "tote.yaml").read_text())
         data["scene"].pop("table_edge_margin")
+        for newer in ("wall_flare_deg", "lip_width", "handle_hole_share", "neighbour_share"):
+            data["scene"].pop(newer, None)
         data["scene"].update(table_size=[1.8, 1.4], table_offset=0.05)
         (tmp_path / "tote.yaml").write_text(yaml.safe_dump(data))
         cfg = load_scene(tmp_path / "tote.yaml")
@@ -218,6 +220,9 @@ def test_the_default_and_older_tote_tasks_draw_what_they_always_drew(spec, tmp_p
     for i in range(30):
         d = draw_episode(cfg.scene, episode_rng(0, i, "simulate"), episode_rng(0, i, "fixture"))
         fixture = {k: v for k, v in asdict(d.fixture).items() if k != "kind"}
+        walls = [fixture.pop(k) for k in ("flare_deg", "lip_width", "handle_holes")
+                 if k in fixture]
+        assert not any(walls)   # these specs draw upright walls without lip or holes
         cam, _ = draw_camera(cfg.camera, d.fixture, episode_rng(0, i, "render"))
         record = [d.container_yaw, d.floor_z, d.friction, d.restitution, d.sizes, d.masses,
                   d.start_positions, d.start_orientations, fixture, d.shapes,

@@ -75,6 +75,14 @@ class SceneConfig:
     wall_height: tuple[float, float] = (0.25, 0.25)   # m, base to rim top
     wall_thickness: float = 0.02          # m
     bottom_thickness: float = 0.02        # m, the box's floor slab
+    # Real totes and trays are not five flat slabs: their walls lean outwards (a few degrees
+    # of draft on a tote, far more on a tray), a lip runs round the rim, and the short ends
+    # have handle holes. Each is drawn per episode (fixture.py ``Fixture``); the defaults
+    # leave the box as it was. The walls' slope from vertical (deg, top outwards), the lip's
+    # width beyond the walls (m), and the share of boxes with a handle hole in each x wall.
+    wall_flare_deg: tuple[float, float] = (0.0, 0.0)
+    lip_width: tuple[float, float] = (0.0, 0.0)
+    handle_hole_share: float = 0.0
     # A board: width (x) and depth (y) of its top, its top's height above the support, its
     # thickness, the height of the region above it, and the share of episodes in which it hangs
     # on a wall behind it instead of standing on four legs. Its front edge is its -y side.
@@ -175,6 +183,13 @@ class SceneConfig:
         _check_interval(o, "wall_height", self.wall_height, 0.05, 1.0)
         _check_range(o, "wall_thickness", self.wall_thickness, 0.002, 0.2)
         _check_range(o, "bottom_thickness", self.bottom_thickness, 0.002, 0.1)
+        _check_interval(o, "wall_flare_deg", self.wall_flare_deg, 0.0, 30.0)
+        _check_interval(o, "lip_width", self.lip_width, 0.0, 0.1)
+        _check_range(o, "handle_hole_share", self.handle_hole_share, 0.0, 1.0)
+        if self.fixture == "board" and (self.wall_flare_deg[1] or self.lip_width[1]
+                                        or self.handle_hole_share):
+            raise ConfigError(f"{o}: wall_flare_deg, lip_width and handle_hole_share shape an "
+                              "open box's walls; a board has none")
         _check_interval(o, "board_width", self.board_width, 0.1, 5.0)
         _check_interval(o, "board_depth", self.board_depth, 0.1, 5.0)
         _check_interval(o, "board_height", self.board_height, 0.05, 3.0)
@@ -273,8 +288,13 @@ class SceneConfig:
 
     def outer_half(self, inner_half: float) -> float:
         """A fixture's outer half footprint from its inner one: an open box's wall stands
-        outside its footprint, a board's edge is the footprint's own."""
-        return inner_half + (0.0 if self.fixture == "board" else self.wall_thickness)
+        outside its footprint (leaning out and with a lip, as far as the spec's widest
+        draws reach), a board's edge is the footprint's own."""
+        if self.fixture == "board":
+            return inner_half
+        spread = (self.wall_height[1] * math.tan(math.radians(self.wall_flare_deg[1]))
+                  + self.lip_width[1])
+        return inner_half + self.wall_thickness + spread
 
     def fixture_outer_half(self, axis: int) -> float:
         """Half the largest outer footprint the spec draws along the fixture's x (0) or y (1)."""

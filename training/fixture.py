@@ -18,7 +18,12 @@ import numpy as np
 from task_outcome_ros.labels import BACKGROUND, FIXTURE
 from training.config import SceneConfig
 
-Box = tuple[tuple[float, float, float], tuple[float, float, float]]  # half extents, centre
+Vec3 = tuple[float, float, float]
+Box = tuple[Vec3, Vec3]   # an upright box: half extents, centre
+# A fixture's solid: half extents, centre, and its turn in the fixture's frame as x-y-z Euler
+# angles (rad, pybullet's convention); upright solids carry NO_TURN.
+PosedBox = tuple[Vec3, Vec3, Vec3]
+NO_TURN: Vec3 = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -44,13 +49,28 @@ class Region:
 
     A box: footprint half extents, bottom and top heights above the fixture's base, and the
     thickness of the fixture's edge around the footprint (an open box's wall, a board's own
-    thickness), the unit discovery measures "beyond the edge" in."""
+    thickness), the unit discovery measures "beyond the edge" in. An open box whose walls
+    lean out widens with height (``flare``: the walls' outward run per unit of rise, its
+    footprint ``half_x``, ``half_y`` at the base), and a lip widens its edge above the rim."""
 
     half_x: float
     half_y: float
     bottom: float
     top: float
     edge: float
+    flare: float = 0.0
+    lip: float = 0.0
+
+    def half_at(self, z) -> np.ndarray:
+        """The footprint's half extents (..., 2) at height(s) ``z`` above the base."""
+        rise = np.clip(np.asarray(z, dtype=np.float64), 0.0, self.top)[..., None]
+        return np.array([self.half_x, self.half_y]) + self.flare * rise
+
+    def edge_at(self, z) -> np.ndarray:
+        """The edge's thickness at height(s) ``z``: the lip counts only at and above the rim,
+        where an object can rest on it; below, an object beside the wall is outside."""
+        z = np.asarray(z, dtype=np.float64)
+        return self.edge + np.where(z >= self.top, self.lip, 0.0)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -123,15 +143,15 @@ class PlacedFixture:
     def region(self) -> Region:
         raise NotImplementedError
 
-    def solid_boxes(self) -> list[Box]:
+    def solid_boxes(self) -> list[PosedBox]:
         """The fixture's own solids (label: fixture), in its frame, base at z = 0."""
         raise NotImplementedError
 
-    def background_boxes(self) -> list[Box]:
+    def background_boxes(self) -> list[PosedBox]:
         """Static solids that belong to the room (label: background), in the fixture's frame."""
         return []
 
-    def labelled_boxes(self) -> list[tuple[int, Box]]:
+    def labelled_boxes(self) -> list[tuple[int, PosedBox]]:
         """Every static solid with its pixel label: the fixture's, then the room's."""
         return ([(FIXTURE, box) for box in self.solid_boxes()]
                 + [(BACKGROUND, box) for box in self.background_boxes()])
@@ -142,43 +162,126 @@ class PlacedFixture:
                                                  self.table.top_z - self.table.floor_z)
         return (self.kind, tuple(self.solid_boxes()), tuple(self.background_boxes()), table)
 
+    def outer_half_footprint(self) -> np.ndarray:
+        """Half the fixture's outer footprint along its x and y, from its own solids."""
+        reach = np.zeros(2)
+        for half, centre, turn in self.solid_boxes():
+            spread = np.abs(euler_rotation(turn)) @ np.asarray(half)
+            reach = np.maximum(reach, np.abs(np.asarray(centre[:2])) + spread[:2])
+        return reach
+
     def to_record(self) -> dict:
         return {**asdict(self), "kind": self.kind}
+
+
+# A handle hole in an x wall (the box's ends): as wide as this or half the wall's inner
+# length, this tall, its top this far below the rim along the wall; walls too short to keep
+# that much wall below it have none.
+HANDLE_WIDTH = 0.12     # m
+HANDLE_HEIGHT = 0.035   # m
+HANDLE_DROP = 0.025     # m
+HANDLE_MIN_WALL = HANDLE_DROP + HANDLE_HEIGHT + 0.03   # m of wall, along its slope
 
 
 @dataclass(frozen=True, kw_only=True)
 class Fixture(PlacedFixture):
     """An open-top box with a rectangular inner footprint (``fixture: open_box``): its target
-    region is the inner volume, up to the walls' top."""
+    region is the inner volume, up to the walls' top. Its walls may lean out by ``flare_deg``
+    (hinged at the inner footprint's edge, so the opening widens with height), a flat lip may
+    run round the rim ``lip_width`` beyond them, and its x walls may have handle holes."""
 
-    half_x: float            # m, inner half extents
+    half_x: float            # m, inner half extents at the base
     half_y: float
     wall_height: float       # m, base to the walls' top
     wall_thickness: float
     bottom_thickness: float
+    flare_deg: float = 0.0
+    lip_width: float = 0.0
+    handle_holes: bool = False
 
     kind = "open_box"
 
+    @property
+    def _flare(self) -> float:
+        """The walls' outward run per unit of rise."""
+        return math.tan(math.radians(self.flare_deg))
+
+    def _rim_thickness(self) -> float:
+        """The wall's horizontal thickness (its thickness, seen from above when leaning)."""
+        return self.wall_thickness / math.cos(math.radians(self.flare_deg))
+
     def region(self) -> Region:
         return Region(self.half_x, self.half_y, self.bottom_thickness, self.wall_height,
-                      self.wall_thickness)
+                      self._rim_thickness(), flare=self._flare, lip=self.lip_width)
 
     def aim_point(self) -> np.ndarray:
         """Halfway up the walls over the footprint's centre."""
         return np.array([0.0, 0.0, self.wall_height / 2])
 
-    def solid_boxes(self) -> list[Box]:
-        """The open box as five boxes (half extents, centre): its bottom and four walls."""
+    def solid_boxes(self) -> list[PosedBox]:
+        """The open box: its bottom, four walls (each in pieces round a handle hole), and a
+        flat rim over their tops when they lean or carry a lip. An x wall spans the corners."""
         hx, hy, t, h = self.half_x, self.half_y, self.wall_thickness, self.wall_height
-        ox, oy = hx + t, hy + t
-        bottom = ((ox, oy, self.bottom_thickness / 2), (0.0, 0.0, self.bottom_thickness / 2))
-        walls = [
-            ((t / 2, oy, h / 2), (hx + t / 2, 0.0, h / 2)),
-            ((t / 2, oy, h / 2), (-hx - t / 2, 0.0, h / 2)),
-            ((hx, t / 2, h / 2), (0.0, hy + t / 2, h / 2)),
-            ((hx, t / 2, h / 2), (0.0, -hy - t / 2, h / 2)),
-        ]
-        return [bottom, *walls]
+        bottom = ((hx + t, hy + t, self.bottom_thickness / 2),
+                  (0.0, 0.0, self.bottom_thickness / 2), NO_TURN)
+        top_x, top_y = hx + h * self._flare, hy + h * self._flare
+        solids = [bottom]
+        for axis, sign in ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)):
+            span = top_y + t if axis == 0 else top_x     # half the wall's length, at the top
+            holes = self.handle_holes and axis == 0
+            solids += self._wall(axis, sign, span, holes)
+        if self.flare_deg or self.lip_width:
+            solids += self._rim(top_x, top_y)
+        return solids
+
+    def _wall(self, axis: int, sign: float, span: float, hole: bool) -> list[PosedBox]:
+        """One wall leaning out by flare_deg from the inner footprint's edge, as the pieces
+        of its (along, up the slope) rectangle round a handle hole if it has one."""
+        t, h = self.wall_thickness, self.wall_height
+        lean = math.radians(self.flare_deg)
+        length = h / math.cos(lean)                      # up the slope
+        hinge = self.half_x if axis == 0 else self.half_y
+        # Unit vectors in the fixture's frame: up the slope, out through the wall, along it.
+        up = np.zeros(3)
+        up[axis], up[2] = sign * math.sin(lean), math.cos(lean)
+        out = np.zeros(3)
+        out[axis], out[2] = sign * math.cos(lean), -math.sin(lean)
+        along = np.zeros(3)
+        along[1 - axis] = 1.0
+        # A box's x tilts about y (x walls), its y about x (y walls); upright walls untilted.
+        if not self.flare_deg:
+            turn = NO_TURN
+        elif axis == 0:
+            turn = (0.0, sign * lean, 0.0)
+        else:
+            turn = (-sign * lean, 0.0, 0.0)
+        pieces = [(-span, span, 0.0, length)]            # (along from, to, up from, to)
+        if hole and length >= HANDLE_MIN_WALL:
+            width = min(HANDLE_WIDTH, self.half_y)
+            top = length - HANDLE_DROP
+            low = top - HANDLE_HEIGHT
+            pieces = [(-span, span, 0.0, low), (-span, span, top, length),
+                      (-span, -width / 2, low, top), (width / 2, span, low, top)]
+        hinge_point = np.zeros(3)
+        hinge_point[axis] = sign * hinge
+        solids = []
+        for a0, a1, u0, u1 in pieces:
+            centre = (hinge_point + (a0 + a1) / 2 * along + (u0 + u1) / 2 * up + t / 2 * out)
+            half = [0.0, 0.0, (u1 - u0) / 2]
+            half[axis], half[1 - axis] = t / 2, (a1 - a0) / 2
+            solids.append((tuple(half), tuple(float(v) for v in centre), turn))
+        return solids
+
+    def _rim(self, top_x: float, top_y: float) -> list[PosedBox]:
+        """A flat rim, a wall's thickness deep, from the opening's edge to the lip's: the x
+        sides span the corners."""
+        t, h = self.wall_thickness, self.wall_height
+        width = self._rim_thickness() + self.lip_width
+        z = h - t / 2
+        return [((width / 2, top_y + width, t / 2), (sign * (top_x + width / 2), 0.0, z), NO_TURN)
+                for sign in (1.0, -1.0)] + [
+                ((top_x, width / 2, t / 2), (0.0, sign * (top_y + width / 2), z), NO_TURN)
+                for sign in (1.0, -1.0)]
 
 
 # A board's legs and the wall behind it (see Board).
@@ -210,25 +313,37 @@ class Board(PlacedFixture):
         on it and the floor in front of it (where objects fall) all stay in view."""
         return np.array([0.0, -self.half_y, 0.6 * self.height])
 
-    def solid_boxes(self) -> list[Box]:
+    def solid_boxes(self) -> list[PosedBox]:
         t, h = self.thickness, self.height
-        board = ((self.half_x, self.half_y, t / 2), (0.0, 0.0, h - t / 2))
+        board = ((self.half_x, self.half_y, t / 2), (0.0, 0.0, h - t / 2), NO_TURN)
         if self.wall_mounted:
             return [board]
         leg_half = ((LEG_WIDTH / 2, LEG_WIDTH / 2, (h - t) / 2))
         inset = LEG_WIDTH / 2
-        legs = [(leg_half, (sx * (self.half_x - inset), sy * (self.half_y - inset), (h - t) / 2))
-                for sx in (-1, 1) for sy in (-1, 1)]
+        legs = [(leg_half, (sx * (self.half_x - inset), sy * (self.half_y - inset), (h - t) / 2),
+                 NO_TURN) for sx in (-1, 1) for sy in (-1, 1)]
         return [board, *legs]
 
-    def background_boxes(self) -> list[Box]:
+    def background_boxes(self) -> list[PosedBox]:
         if not self.wall_mounted:
             return []
         width, thick, tall = BACK_WALL
-        return [((width / 2, thick / 2, tall / 2), (0.0, self.half_y + thick / 2, tall / 2))]
+        return [((width / 2, thick / 2, tall / 2), (0.0, self.half_y + thick / 2, tall / 2),
+                 NO_TURN)]
 
 
 FIXTURE_KINDS = {"open_box": Fixture, "board": Board}   # by SceneConfig.fixture (FIXTURES)
+
+
+def euler_rotation(turn: Vec3) -> np.ndarray:
+    """The rotation of x-y-z Euler angles (rad) as pybullet reads them: R = Rz Ry Rx."""
+    if tuple(turn) == NO_TURN:
+        return np.eye(3)
+    (cx, cy, cz), (sx, sy, sz) = np.cos(turn), np.sin(turn)
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
+    ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
+    rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+    return rz @ ry @ rx
 
 
 def axis_angle_rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
@@ -265,8 +380,8 @@ def first_fixture(scene: SceneConfig, yaw: float = 0.0, base_z: float = 0.0) -> 
                      clearance=scene.clearance, x=0.0, y=0.0, yaw=yaw, base_z=base_z)
     return Fixture(half_x=scene.inner_size_x[0] / 2, half_y=scene.inner_size_y[0] / 2,
                    wall_height=scene.wall_height[0], wall_thickness=scene.wall_thickness,
-                   bottom_thickness=scene.bottom_thickness, x=0.0, y=0.0, yaw=yaw,
-                   base_z=base_z)
+                   bottom_thickness=scene.bottom_thickness, flare_deg=scene.wall_flare_deg[0],
+                   lip_width=scene.lip_width[0], x=0.0, y=0.0, yaw=yaw, base_z=base_z)
 
 
 def _uniform(rng: np.random.Generator, interval: tuple[float, float]) -> float:
@@ -291,6 +406,11 @@ def draw_fixture(scene: SceneConfig, yaw: float, base_z: float,
                     "wall_height": _uniform(rng, scene.wall_height),
                     "wall_thickness": scene.wall_thickness,
                     "bottom_thickness": scene.bottom_thickness}
+        # Fixed or absent in older specs, where these consume no randomness.
+        geometry["flare_deg"] = _uniform(rng, scene.wall_flare_deg)
+        geometry["lip_width"] = _uniform(rng, scene.lip_width)
+        geometry["handle_holes"] = bool(scene.handle_hole_share > 0
+                                        and rng.random() < scene.handle_hole_share)
     offset = scene.fixture_offset
     x, y = (float(v) for v in rng.uniform(-offset, offset, 2)) if offset > 0 else (0.0, 0.0)
     table = None
@@ -305,6 +425,17 @@ def draw_fixture(scene: SceneConfig, yaw: float, base_z: float,
                                         tilt_azimuth_deg=tilt_azimuth)
 
 
+def _outer_half(scene: SceneConfig, geometry: dict, key: str) -> float:
+    """The drawn fixture's outer half footprint along one axis (``key``: half_x or half_y)."""
+    if scene.fixture == "board":
+        return geometry[key]
+    if not (geometry["flare_deg"] or geometry["lip_width"]):
+        return geometry[key] + scene.wall_thickness
+    lean = math.radians(geometry["flare_deg"])
+    return (geometry[key] + geometry["wall_height"] * math.tan(lean)
+            + scene.wall_thickness / math.cos(lean) + geometry["lip_width"])
+
+
 def _draw_table(scene: SceneConfig, geometry: dict, x: float, y: float, yaw: float,
                 base_z: float, rng: np.random.Generator) -> Table:
     """The table under the episode's fixture (base centre x, y): its size and height, and
@@ -317,7 +448,7 @@ def _draw_table(scene: SceneConfig, geometry: dict, x: float, y: float, yaw: flo
         toff = scene.table_offset
         tx, ty = (float(v) for v in rng.uniform(-toff, toff, 2)) if toff > 0 else (0.0, 0.0)
     else:
-        free = [max(0.0, half - scene.outer_half(geometry[key]) - scene.table_edge_margin)
+        free = [max(0.0, half - _outer_half(scene, geometry, key) - scene.table_edge_margin)
                 for half, key in ((half_x, "half_x"), (half_y, "half_y"))]
         along_x, along_y = (float(rng.uniform(-f, f)) if f > 0 else 0.0 for f in free)
         c, s = math.cos(yaw), math.sin(yaw)   # the fixture's axes in the world

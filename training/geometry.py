@@ -95,11 +95,13 @@ def object_measurements(obj: dict, episode: dict, scene: SceneConfig) -> dict[st
     """
     fixture = episode_fixture(episode, scene)
     region = fixture.region()
-    half_in = np.array([region.half_x, region.half_y])
-    half_out = half_in + region.edge
     pts = fixture.to_frame(object_sample_points(obj))
     com = fixture.to_frame(np.asarray(obj["position"]))
-    over_xy = np.all(np.abs(pts[:, :2]) <= half_in + CONTACT_SLOP, axis=1)
+    # The footprint and edge at each point's own height (a leaning wall's box widens upwards).
+    half_in, half_in_pts = region.half_at(com[2]), region.half_at(pts[:, 2])
+    edge = float(region.edge_at(com[2]))
+    half_out_pts = half_in_pts + region.edge_at(pts[:, 2])[:, None]
+    over_xy = np.all(np.abs(pts[:, :2]) <= half_in_pts + CONTACT_SLOP, axis=1)
     within_z = (pts[:, 2] >= region.bottom - CONTACT_SLOP) & (pts[:, 2] <= region.top)
     # Below the region's bottom counts only once the centre of mass is there (a board's fallen
     # objects); above it, how far inside says nothing, so the spike at -1 stays a spike.
@@ -108,13 +110,13 @@ def object_measurements(obj: dict, episode: dict, scene: SceneConfig) -> dict[st
         beyond = max(beyond, region.bottom - float(com[2]))
     return {
         "com_offset": float(np.max(np.abs(com[:2]) / half_in)),
-        "com_beyond_edge": beyond / region.edge,
-        "com_beyond_outer": float(np.any(np.abs(com[:2]) > half_out)
-                                  or com[2] < region.bottom - region.edge),
+        "com_beyond_edge": beyond / edge,
+        "com_beyond_outer": float(np.any(np.abs(com[:2]) > half_in + edge)
+                                  or com[2] < region.bottom - edge),
         "inside_fraction": float(np.mean(over_xy & within_z)),
         "footprint_fraction": float(np.mean(over_xy)),
-        "reach_beyond_footprint": float(np.max(np.abs(pts[:, :2]) - half_in)),
-        "over_fraction": float(np.mean(np.all(np.abs(pts[:, :2]) < half_out, axis=1))),
+        "reach_beyond_footprint": float(np.max(np.abs(pts[:, :2]) - half_in_pts)),
+        "over_fraction": float(np.mean(np.all(np.abs(pts[:, :2]) < half_out_pts, axis=1))),
         "top_above_region": object_top(obj, fixture) - region.top,
     }
 

@@ -111,12 +111,12 @@ class RayWorld:
                                    physicsClientId=c)
         labels[floor] = BACKGROUND
         yaw = pb.getQuaternionFromEuler([0, 0, fixture.yaw])
-        for label, (half, centre) in fixture.labelled_boxes():
+        for label, (half, centre, turn) in fixture.labelled_boxes():
             box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(half),
                                           physicsClientId=c)
-            pos, _ = pb.multiplyTransforms([fixture.x, fixture.y, fixture.base_z], yaw,
-                                           list(centre), [0, 0, 0, 1])
-            labels[pb.createMultiBody(0, box, basePosition=pos, baseOrientation=yaw,
+            pos, orn = pb.multiplyTransforms([fixture.x, fixture.y, fixture.base_z], yaw,
+                                             list(centre), pb.getQuaternionFromEuler(turn))
+            labels[pb.createMultiBody(0, box, basePosition=pos, baseOrientation=orn,
                                       physicsClientId=c)] = label
         if fixture.table is not None:
             half, centre = fixture.table.box()

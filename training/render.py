@@ -33,7 +33,7 @@ from training.config import (
     DatasetConfig,
     SceneConfig,
 )
-from training.fixture import PlacedFixture, _uniform, episode_fixture
+from training.fixture import PlacedFixture, _uniform, episode_fixture, euler_rotation
 from training.geometry import quat_to_matrix
 from training.noise import apply_kinect_noise
 from training.scenery import draw_neighbours
@@ -133,8 +133,8 @@ def scene_boxes(episode: dict, outcomes: list[str], scene: SceneConfig,
     fixture = episode_fixture(episode, scene)
     rot = fixture.rotation
     base = np.array([fixture.x, fixture.y, fixture.base_z])
-    boxes = [SceneBox(np.array(h), rot @ np.array(p) + base, rot, label)
-             for label, (h, p) in fixture.labelled_boxes()]
+    boxes = [SceneBox(np.array(h), rot @ np.array(p) + base, rot @ euler_rotation(turn), label)
+             for label, (h, p, turn) in fixture.labelled_boxes()]
     ids = table.outcome_ids
     if fixture.table is not None:  # the support: background, like the room floor
         half, centre = fixture.table.box()

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from training.config import SceneConfig
-from training.fixture import PlacedFixture
+from training.fixture import PlacedFixture, euler_rotation
 
 CLEARANCE_M = 0.02   # between a neighbour's footprint and any simulated object's reach
 SIDES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0))   # (fixture axis, direction)
@@ -32,14 +32,6 @@ class Solid:
     rotation: np.ndarray
 
 
-def footprint_half(fixture: PlacedFixture) -> np.ndarray:
-    """Half the fixture's outer footprint along its x and y, from its own solids."""
-    reach = np.zeros(2)
-    for half, centre in fixture.solid_boxes():
-        reach = np.maximum(reach, np.abs(centre[:2]) + np.array(half[:2]))
-    return reach
-
-
 def draw_neighbours(fixture: PlacedFixture, scene: SceneConfig, objects: list[dict],
                     rng: np.random.Generator) -> tuple[list[Solid], dict | None]:
     """This frame's neighbours and their contents, and what was drawn (None: none).
@@ -47,7 +39,7 @@ def draw_neighbours(fixture: PlacedFixture, scene: SceneConfig, objects: list[di
     if scene.neighbour_share <= 0 or rng.random() >= scene.neighbour_share:
         return [], None
     count = int(rng.integers(scene.neighbour_count[0], scene.neighbour_count[1] + 1))
-    half = footprint_half(fixture)
+    half = fixture.outer_half_footprint()
     local_objects, reach = object_reach(fixture, objects)
     solids, drawn = [], []
     for side in rng.permutation(len(SIDES))[:count]:
@@ -81,7 +73,7 @@ def _contents(fixture: PlacedFixture, scene: SceneConfig, n: int,
     """n boxes resting on the target region's bottom, in the fixture's frame: (half extents,
     centre, yaw). They may overlap one another, which reads as a pile."""
     region = fixture.region()
-    inner = np.array([region.half_x, region.half_y])
+    inner = region.half_at(region.bottom)
     boxes = []
     for _ in range(n):
         half = rng.uniform(*scene.object_edge, size=3) / 2
@@ -98,8 +90,9 @@ def _neighbour_solids(fixture: PlacedFixture, offset: np.ndarray,
     """The fixture's solids and the contents, moved by ``offset`` in its frame, in the world."""
     shift = np.array([offset[0], offset[1], 0.0])
     rotation = fixture.rotation
-    solids = [Solid(np.array(half, float), fixture.to_world(np.array(centre) + shift), rotation)
-              for half, centre in fixture.solid_boxes()]
+    solids = [Solid(np.array(half, float), fixture.to_world(np.array(centre) + shift),
+                    rotation @ euler_rotation(turn))
+              for half, centre, turn in fixture.solid_boxes()]
     for half, centre, yaw in boxes:
         c, s = math.cos(yaw), math.sin(yaw)
         turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

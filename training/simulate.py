@@ -96,7 +96,7 @@ def draw_episode(scene: SceneConfig, rng: np.random.Generator,
         offsets = fixture.to_world_xy(offsets, "fixture")
         starts = floor_z + heights
     else:
-        reach = np.array([region.half_x, region.half_y]) + scene.release_margin
+        reach = region.half_at(region.top) + scene.release_margin
         offsets = fixture.to_world_xy(-reach + 2 * reach * unit_offsets, scene.release_frame)
         if scene.release_orientation == "upright":
             orientations = [upright_quaternion(fixture_rng) for _ in range(n)]
@@ -206,7 +206,9 @@ class World:
         boxes = fixture.solid_boxes() + fixture.background_boxes()
         shape = pb.createCollisionShapeArray(
             [pb.GEOM_BOX] * len(boxes), halfExtents=[list(b[0]) for b in boxes],
-            collisionFramePositions=[list(b[1]) for b in boxes], physicsClientId=c)
+            collisionFramePositions=[list(b[1]) for b in boxes],
+            collisionFrameOrientations=[pb.getQuaternionFromEuler(b[2]) for b in boxes],
+            physicsClientId=c)
         self.fixture_body = pb.createMultiBody(0, shape, physicsClientId=c)
         self.table = None
         if fixture.table is not None:

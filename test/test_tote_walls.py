@@ -1,0 +1,156 @@
+"""Open boxes shaped like real totes and trays (training/fixture.py ``Fixture``): walls leaning
+out, a lip round the rim, handle holes in the end walls. What the physics builds, what the
+renderer draws and what discovery measures must agree on that geometry."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from task_outcome_ros.labels import FIXTURE
+from training.config import ConfigError, SceneConfig
+from training.fixture import (
+    HANDLE_DROP,
+    HANDLE_HEIGHT,
+    Fixture,
+    draw_fixture,
+    euler_rotation,
+    fixture_from_record,
+)
+from training.geometry import geometric_outcome, object_measurements
+from training.render import Camera, SceneBox, look_at, render
+from training.scene import load_scene
+
+pytestmark = pytest.mark.unit
+
+FLARE = 15.0
+# A 0.6 x 0.4 m tray-like tote, walls 0.2 m high leaning 15 deg out, a 2 cm lip, handle holes.
+TRAY = Fixture(half_x=0.3, half_y=0.2, wall_height=0.2, wall_thickness=0.01,
+               bottom_thickness=0.01, flare_deg=FLARE, lip_width=0.02, handle_holes=True,
+               x=0.0, y=0.0, yaw=0.0, base_z=0.0)
+RUN = math.tan(math.radians(FLARE))   # the walls' outward run per metre of rise
+
+
+def _inside_a_solid(fixture: Fixture, point) -> bool:
+    """Whether a fixture-frame point lies in any of the fixture's solids."""
+    for half, centre, turn in fixture.solid_boxes():
+        local = euler_rotation(turn).T @ (np.asarray(point, float) - np.asarray(centre))
+        if np.all(np.abs(local) <= np.asarray(half) + 1e-9):
+            return True
+    return False
+
+
+def test_leaning_walls_rise_from_the_footprint_to_the_wider_opening():
+    t = TRAY.wall_thickness
+    for z in (0.02, 0.1, 0.17):
+        inner_face = TRAY.half_x + z * RUN
+        # Just inside the inner face is open; just outside it is wall, along both axes (on
+        # the end wall beside its handle hole).
+        assert not _inside_a_solid(TRAY, (inner_face - 0.002, 0.15, z))
+        assert _inside_a_solid(TRAY, (inner_face + 0.002, 0.15, z))
+        assert _inside_a_solid(TRAY, (0.0, -(TRAY.half_y + z * RUN + 0.002), z))
+        assert not _inside_a_solid(TRAY, (inner_face + 0.002 + t / math.cos(math.radians(FLARE))
+                                          + 0.002, 0.15, z))
+    region = TRAY.region()
+    assert region.half_at(0.0) == pytest.approx([0.3, 0.2])
+    assert region.half_at(0.2) == pytest.approx([0.3 + 0.2 * RUN, 0.2 + 0.2 * RUN])
+    # The rim and lip close the top: the outer footprint is the opening plus wall and lip.
+    assert TRAY.outer_half_footprint() == pytest.approx(
+        region.half_at(0.2) + t / math.cos(math.radians(FLARE)) + 0.02)
+
+
+def test_a_handle_hole_opens_each_end_wall_below_the_rim():
+    along_slope = TRAY.wall_height / math.cos(math.radians(FLARE))
+    middle = along_slope - HANDLE_DROP - HANDLE_HEIGHT / 2      # along the wall's slope
+    z = middle * math.cos(math.radians(FLARE))
+    mid_wall = TRAY.half_x + middle * math.sin(math.radians(FLARE)) + 0.005
+    for sign in (1.0, -1.0):
+        assert not _inside_a_solid(TRAY, (sign * mid_wall, 0.0, z))        # the hole
+        assert _inside_a_solid(TRAY, (sign * mid_wall, 0.1, z))            # wall beside it
+    # The long (y) walls have none.
+    assert _inside_a_solid(TRAY, (0.0, TRAY.half_y + z * RUN + 0.005, z))
+    plain = fixture_from_record({**TRAY.to_record(), "handle_holes": False})
+    assert _inside_a_solid(plain, (mid_wall, 0.0, z))
+
+
+def test_the_renderer_draws_the_same_walls_as_pybullets_ray_test():
+    """The renderer turns solids with ``euler_rotation``, the physics with pybullet's own
+    quaternions: per pixel, both must hit the fixture in the same places."""
+    pb = pytest.importorskip("pybullet")
+    client = pb.connect(pb.DIRECT)
+    try:
+        solids, bodies = [], set()
+        for half, centre, turn in TRAY.solid_boxes():
+            col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(half),
+                                          physicsClientId=client)
+            bodies.add(pb.createMultiBody(0, col, basePosition=list(centre),
+                                          baseOrientation=pb.getQuaternionFromEuler(turn),
+                                          physicsClientId=client))
+            solids.append(SceneBox(np.array(half), np.array(centre), euler_rotation(turn),
+                                   FIXTURE))
+        pos = np.array([0.7, -0.45, 0.65])
+        cam = Camera(96, 72, 80.0, 80.0, 47.5, 35.5, pos, look_at(pos, np.zeros(3)))
+        depth, labels, _ = render(solids, -0.5, cam)
+        u, v = np.meshgrid(np.arange(96), np.arange(72))
+        rays = cam.rotation @ np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy,
+                                        np.ones_like(u, float)]).reshape(3, -1)
+        hits = pb.rayTestBatch([list(pos)] * rays.shape[1], (pos[:, None] + 4 * rays).T.tolist(),
+                               physicsClientId=client)
+    finally:
+        pb.disconnect(client)
+    theirs = np.array([h[0] in bodies for h in hits])
+    ours = labels.reshape(-1) == FIXTURE
+    assert theirs.sum() > 1500
+    assert np.mean(ours == theirs) > 0.98        # all but silhouette pixels
+
+
+@pytest.mark.parametrize("where,size,expected", [
+    # Wedged against the leaning wall, beyond the base's footprint but inside the box.
+    ((0.3 + 0.12 * RUN - 0.017, 0.0, 0.15), 0.03, "inside"),
+    # On the table against the wall's outside, under the opening's edge.
+    ((0.36, 0.0, 0.03), 0.06, "outside"),
+    # Resting on the lip.
+    ((0.3 + 0.2 * RUN + 0.025, 0.0, 0.23), 0.06, "partly_inside"),
+], ids=["wedged-inside", "outside-under-lean", "on-lip"])
+def test_measurements_follow_the_leaning_walls_and_the_lip(where, size, expected):
+    obj = {"shape": "box", "size": [size] * 3, "position": list(where),
+           "orientation": [0.0, 0.0, 0.0, 1.0]}
+    episode = {"fixture": TRAY.to_record(), "objects": [obj]}
+    measured = object_measurements(obj, episode, SceneConfig())
+    assert geometric_outcome(measured) == expected, measured
+
+
+def test_the_tote_spec_draws_leaning_walls_lips_and_holes_that_fit_their_table():
+    scene = load_scene("tote").scene
+    rng = np.random.default_rng(3)
+    flares, lips, holes = [], [], []
+    for _ in range(300):
+        fixture = draw_fixture(scene, float(rng.uniform(-1.5, 1.5)), 0.0, rng)
+        flares.append(fixture.flare_deg)
+        lips.append(fixture.lip_width)
+        holes.append(fixture.handle_holes)
+        assert fixture_from_record(fixture.to_record()) == fixture
+        # Its outer footprint stays on the table, wherever on it the tote stands.
+        reach = fixture.outer_half_footprint()
+        table = fixture.table
+        c, s = math.cos(fixture.yaw), math.sin(fixture.yaw)
+        offset = np.array([[c, s], [-s, c]]) @ np.array([fixture.x - table.x,
+                                                        fixture.y - table.y])
+        assert np.all(np.abs(offset) + reach <= [table.half_x, table.half_y])
+    assert 0.0 <= min(flares) < 2.0 and 18.0 < max(flares) <= 20.0
+    assert 0.0 <= min(lips) and max(lips) <= 0.03
+    assert 0.4 < np.mean(holes) < 0.6
+
+
+@pytest.mark.parametrize("fields,error", [
+    ({"wall_flare_deg": [0.0, 40.0]}, "wall_flare_deg"),
+    ({"lip_width": [0.0, 0.5]}, "lip_width"),
+    ({"handle_hole_share": 1.5}, "handle_hole_share"),
+    ({"fixture": "board", "wall_flare_deg": [0.0, 5.0]}, "a board has none"),
+])
+def test_bad_wall_fields_are_refused(fields, error):
+    with pytest.raises(ConfigError, match=error):
+        SceneConfig(**{k: tuple(v) if isinstance(v, list) else v
+                       for k, v in fields.items()}).validate()
