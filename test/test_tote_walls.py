@@ -12,6 +12,7 @@ import pytest
 from task_outcome_ros.labels import FIXTURE
 from training.config import ConfigError, SceneConfig
 from training.fixture import (
+    FIN_MAX,
     HANDLE_DROP,
     HANDLE_HEIGHT,
     Fixture,
@@ -59,6 +60,23 @@ def test_leaning_walls_rise_from_the_footprint_to_the_wider_opening():
     # The rim and lip close the top: the outer footprint is the opening plus wall and lip.
     assert TRAY.outer_half_footprint() == pytest.approx(
         region.half_at(0.2) + t / math.cos(math.radians(FLARE)) + 0.02)
+
+
+def test_leaning_walls_meet_at_the_corners_without_fins_or_gaps():
+    """A leaning wall narrows towards its foot: built from strips, its corners neither leave
+    a slit nor reach more than FIN_MAX past the next wall's outside."""
+    t = TRAY.wall_thickness
+    rim = t / math.cos(math.radians(FLARE))
+    for z in np.linspace(0.01, 0.185, 12):
+        half_x, half_y = TRAY.region().half_at(z)
+        # Across the corner seam, from the opening inward to the outside of both walls: solid.
+        for d in np.linspace(0.001, rim - 0.001, 4):
+            assert _inside_a_solid(TRAY, (half_x + d, half_y + d, z)), (z, d)
+        # Diagonally out past both outer faces by more than FIN_MAX: nothing.
+        beyond = rim + FIN_MAX + 0.002
+        assert not _inside_a_solid(TRAY, (half_x + beyond, half_y + beyond, z)), z
+        assert not _inside_a_solid(TRAY, (half_x + rim / 2, half_y + beyond, z)), z
+        assert not _inside_a_solid(TRAY, (half_x + beyond, half_y + rim / 2, z)), z
 
 
 def test_a_handle_hole_opens_each_end_wall_below_the_rim():
@@ -154,3 +172,30 @@ def test_bad_wall_fields_are_refused(fields, error):
     with pytest.raises(ConfigError, match=error):
         SceneConfig(**{k: tuple(v) if isinstance(v, list) else v
                        for k, v in fields.items()}).validate()
+
+
+def test_the_physics_keeps_every_solid_of_a_many_piece_fixture():
+    """pybullet drops children past 16 in one compound shape; a leaning tote has dozens of
+    pieces. Rays from the tote's middle must hit every wall where it is, at every height."""
+    pytest.importorskip("pybullet")
+    import pybullet as pb
+
+    from training.simulate import World
+
+    assert len(TRAY.solid_boxes()) > 16
+    world = World(SceneConfig())
+    try:
+        world._build(TRAY)
+        c = world.client
+        for body in world.fixture_bodies:
+            pb.resetBasePositionAndOrientation(body, [0, 0, 0], [0, 0, 0, 1], physicsClientId=c)
+        for z in np.linspace(0.02, 0.17, 6):
+            half_x, half_y = TRAY.region().half_at(z)
+            ends = [[0, -1, z], [0, 1, z], [-1, 0.15, z], [1, 0.15, z]]
+            hits = pb.rayTestBatch([[0, 0, z], [0, 0, z], [0, 0.15, z], [0, 0.15, z]], ends,
+                                   physicsClientId=c)
+            assert all(h[0] >= 0 for h in hits), z
+            reached = [abs(h[3][1]) for h in hits[:2]] + [abs(h[3][0]) for h in hits[2:]]
+            assert reached == pytest.approx([half_y, half_y, half_x, half_x], abs=0.004), z
+    finally:
+        world.close()

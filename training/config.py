@@ -292,9 +292,11 @@ class SceneConfig:
         draws reach), a board's edge is the footprint's own."""
         if self.fixture == "board":
             return inner_half
-        spread = (self.wall_height[1] * math.tan(math.radians(self.wall_flare_deg[1]))
-                  + self.lip_width[1])
-        return inner_half + self.wall_thickness + spread
+        if not (self.wall_flare_deg[1] or self.lip_width[1]):
+            return inner_half + self.wall_thickness
+        lean = math.radians(self.wall_flare_deg[1])   # a leaning wall is wider seen from above
+        return (inner_half + self.wall_height[1] * math.tan(lean)
+                + self.wall_thickness / math.cos(lean) + self.lip_width[1])
 
     def fixture_outer_half(self, axis: int) -> float:
         """Half the largest outer footprint the spec draws along the fixture's x (0) or y (1)."""

@@ -181,6 +181,7 @@ HANDLE_WIDTH = 0.12     # m
 HANDLE_HEIGHT = 0.035   # m
 HANDLE_DROP = 0.025     # m
 HANDLE_MIN_WALL = HANDLE_DROP + HANDLE_HEIGHT + 0.03   # m of wall, along its slope
+FIN_MAX = 0.01          # m: how far a leaning wall's strip may reach past the next wall
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -227,20 +228,22 @@ class Fixture(PlacedFixture):
         top_x, top_y = hx + h * self._flare, hy + h * self._flare
         solids = [bottom]
         for axis, sign in ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)):
-            span = top_y + t if axis == 0 else top_x     # half the wall's length, at the top
-            holes = self.handle_holes and axis == 0
-            solids += self._wall(axis, sign, span, holes)
+            solids += self._wall(axis, sign, self.handle_holes and axis == 0)
         if self.flare_deg or self.lip_width:
             solids += self._rim(top_x, top_y)
         return solids
 
-    def _wall(self, axis: int, sign: float, span: float, hole: bool) -> list[PosedBox]:
-        """One wall leaning out by flare_deg from the inner footprint's edge, as the pieces
-        of its (along, up the slope) rectangle round a handle hole if it has one."""
+    def _wall(self, axis: int, sign: float, hole: bool) -> list[PosedBox]:
+        """One wall leaning out by flare_deg from the inner footprint's edge. A leaning wall
+        narrows towards its foot, which one box cannot: it is a stack of strips up its slope,
+        each as long as the opening at its own top (an x wall also spans the corners), so a
+        strip's foot reaches past the next wall by at most ``FIN_MAX``. A handle hole takes
+        the middle of the strips it spans."""
         t, h = self.wall_thickness, self.wall_height
         lean = math.radians(self.flare_deg)
         length = h / math.cos(lean)                      # up the slope
         hinge = self.half_x if axis == 0 else self.half_y
+        across = self.half_y if axis == 0 else self.half_x   # half the footprint along it
         # Unit vectors in the fixture's frame: up the slope, out through the wall, along it.
         up = np.zeros(3)
         up[axis], up[2] = sign * math.sin(lean), math.cos(lean)
@@ -255,21 +258,28 @@ class Fixture(PlacedFixture):
             turn = (0.0, sign * lean, 0.0)
         else:
             turn = (-sign * lean, 0.0, 0.0)
-        pieces = [(-span, span, 0.0, length)]            # (along from, to, up from, to)
+        strips = max(1, math.ceil(h * self._flare / FIN_MAX))
+        cuts = list(np.linspace(0.0, length, strips + 1))
+        opening = None
         if hole and length >= HANDLE_MIN_WALL:
-            width = min(HANDLE_WIDTH, self.half_y)
-            top = length - HANDLE_DROP
-            low = top - HANDLE_HEIGHT
-            pieces = [(-span, span, 0.0, low), (-span, span, top, length),
-                      (-span, -width / 2, low, top), (width / 2, span, low, top)]
+            opening = (length - HANDLE_DROP - HANDLE_HEIGHT, length - HANDLE_DROP)
+            cuts = sorted(set(cuts) | set(opening))
         hinge_point = np.zeros(3)
         hinge_point[axis] = sign * hinge
+        width = min(HANDLE_WIDTH, self.half_y)           # the hole's
         solids = []
-        for a0, a1, u0, u1 in pieces:
-            centre = (hinge_point + (a0 + a1) / 2 * along + (u0 + u1) / 2 * up + t / 2 * out)
-            half = [0.0, 0.0, (u1 - u0) / 2]
-            half[axis], half[1 - axis] = t / 2, (a1 - a0) / 2
-            solids.append((tuple(half), tuple(float(v) for v in centre), turn))
+        for u0, u1 in zip(cuts[:-1], cuts[1:]):
+            if u1 - u0 < 1e-6:
+                continue
+            span = across + u1 * math.cos(lean) * self._flare + (t if axis == 0 else 0.0)
+            in_hole = opening is not None and opening[0] <= u0 and u1 <= opening[1]
+            for a0, a1 in ([(-span, -width / 2), (width / 2, span)] if in_hole
+                           else [(-span, span)]):
+                centre = (hinge_point + (a0 + a1) / 2 * along + (u0 + u1) / 2 * up
+                          + t / 2 * out)
+                half = [0.0, 0.0, (u1 - u0) / 2]
+                half[axis], half[1 - axis] = t / 2, (a1 - a0) / 2
+                solids.append((tuple(half), tuple(float(v) for v in centre), turn))
         return solids
 
     def _rim(self, top_x: float, top_y: float) -> list[PosedBox]:

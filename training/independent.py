@@ -41,7 +41,7 @@ from task_outcome_ros.labels import (
 from training.chunks import load_chunks, run_chunks
 from training.config import dataset_config_from_dict, load_json, save_json
 from training.discover import load_outcomes
-from training.fixture import axis_angle_rotation, episode_fixture
+from training.fixture import NO_TURN, axis_angle_rotation, episode_fixture
 from training.render import look_at, write_pair
 from training.simulate import object_collision_shape
 
@@ -116,6 +116,8 @@ class RayWorld:
                                           physicsClientId=c)
             pos, orn = pb.multiplyTransforms([fixture.x, fixture.y, fixture.base_z], yaw,
                                              list(centre), pb.getQuaternionFromEuler(turn))
+            if turn == NO_TURN:   # bullet's product is single precision: keep yaw exact
+                orn = yaw
             labels[pb.createMultiBody(0, box, basePosition=pos, baseOrientation=orn,
                                       physicsClientId=c)] = label
         if fixture.table is not None:

@@ -163,6 +163,9 @@ def _placement(scene: SceneConfig, region: Region, shapes: list[str], sizes: np.
 
 
 REBUILD_EVERY = 200
+# pybullet keeps at most this many children in one compound shape and silently drops the
+# rest (MAX_COMPOUND_COLLISION_SHAPES in its shared-memory API).
+MAX_COMPOUND_SHAPES = 16
 
 
 def object_collision_shape(pb, client: int, shape: str, size: list[float]) -> int:
@@ -202,14 +205,18 @@ class World:
         self.floor = pb.createMultiBody(0, plane, physicsClientId=c)
         if fixture is None:  # the spec's first fixture, until an episode says otherwise
             fixture = first_fixture(scene)
-        # Labels do not matter to physics: the fixture's and the room's solids are one body.
+        # Labels do not matter to physics: the fixture's and the room's solids are one body,
+        # or several when they are more than one compound shape may hold.
         boxes = fixture.solid_boxes() + fixture.background_boxes()
-        shape = pb.createCollisionShapeArray(
-            [pb.GEOM_BOX] * len(boxes), halfExtents=[list(b[0]) for b in boxes],
-            collisionFramePositions=[list(b[1]) for b in boxes],
-            collisionFrameOrientations=[pb.getQuaternionFromEuler(b[2]) for b in boxes],
-            physicsClientId=c)
-        self.fixture_body = pb.createMultiBody(0, shape, physicsClientId=c)
+        self.fixture_bodies = []
+        for first in range(0, len(boxes), MAX_COMPOUND_SHAPES):
+            part = boxes[first:first + MAX_COMPOUND_SHAPES]
+            shape = pb.createCollisionShapeArray(
+                [pb.GEOM_BOX] * len(part), halfExtents=[list(b[0]) for b in part],
+                collisionFramePositions=[list(b[1]) for b in part],
+                collisionFrameOrientations=[pb.getQuaternionFromEuler(b[2]) for b in part],
+                physicsClientId=c)
+            self.fixture_bodies.append(pb.createMultiBody(0, shape, physicsClientId=c))
         self.table = None
         if fixture.table is not None:
             half, _ = fixture.table.box()
@@ -242,10 +249,10 @@ class World:
         yaw_q = pb.getQuaternionFromEuler([0, 0, draw.container_yaw])
         pb.resetBasePositionAndOrientation(self.floor, [0, 0, fixture.room_floor_z],
                                            [0, 0, 0, 1], physicsClientId=c)
-        pb.resetBasePositionAndOrientation(self.fixture_body,
-                                           [fixture.x, fixture.y, draw.floor_z], yaw_q,
-                                           physicsClientId=c)
-        statics = [self.floor, self.fixture_body]
+        for body in self.fixture_bodies:
+            pb.resetBasePositionAndOrientation(body, [fixture.x, fixture.y, draw.floor_z], yaw_q,
+                                               physicsClientId=c)
+        statics = [self.floor, *self.fixture_bodies]
         if self.table is not None:
             _, centre = fixture.table.box()
             pb.resetBasePositionAndOrientation(self.table, list(centre), yaw_q,
