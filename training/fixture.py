@@ -174,6 +174,11 @@ class PlacedFixture:
         return {**asdict(self), "kind": self.kind}
 
 
+# A plain open box's record leaves out the wall-shape fields it does not use, so records of
+# specs without them stay what they were (fixture_from_record fills the defaults back in).
+PLAIN_WALLS = {"flare_deg": 0.0, "lip_width": 0.0, "handle_holes": False}
+
+
 # A handle hole in an x wall (the box's ends): as wide as this or half the wall's inner
 # length, this tall, its top this far below the rim along the wall; walls too short to keep
 # that much wall below it have none.
@@ -210,6 +215,13 @@ class Fixture(PlacedFixture):
     def _rim_thickness(self) -> float:
         """The wall's horizontal thickness (its thickness, seen from above when leaning)."""
         return self.wall_thickness / math.cos(math.radians(self.flare_deg))
+
+    def to_record(self) -> dict:
+        record = super().to_record()
+        for field, plain in PLAIN_WALLS.items():
+            if record[field] == plain:
+                del record[field]
+        return record
 
     def region(self) -> Region:
         return Region(self.half_x, self.half_y, self.bottom_thickness, self.wall_height,
