@@ -122,7 +122,7 @@ def test_a_table_edge_margin_puts_the_fixture_anywhere_on_a_drawn_table():
     gaps, sizes = np.array(gaps), np.array(sizes)
     assert gaps.min() >= margin - 1e-9          # always standing on the table
     assert np.mean(gaps < margin + 0.05) > 0.15  # often near an edge ...
-    assert np.mean(gaps > 0.2) > 0.15            # ... often far from every edge
+    assert np.mean(gaps > 0.15) > 0.15           # ... often far from every edge
     for axis, (lo, hi) in enumerate(scene.table_size):  # sizes cover the drawn ranges
         assert lo <= sizes[:, axis].min() < lo + 0.1 and hi - 0.1 < sizes[:, axis].max() <= hi
 

@@ -287,16 +287,10 @@ class SceneConfig:
             raise ConfigError(f"{o}.shape_weights: at least one shape needs a weight > 0")
 
     def outer_half(self, inner_half: float) -> float:
-        """A fixture's outer half footprint from its inner one: an open box's wall stands
-        outside its footprint (leaning out and with a lip, as far as the spec's widest
-        draws reach), a board's edge is the footprint's own."""
-        if self.fixture == "board":
-            return inner_half
-        if not (self.wall_flare_deg[1] or self.lip_width[1]):
-            return inner_half + self.wall_thickness
-        lean = math.radians(self.wall_flare_deg[1])   # a leaning wall is wider seen from above
-        return (inner_half + self.wall_height[1] * math.tan(lean)
-                + self.wall_thickness / math.cos(lean) + self.lip_width[1])
+        """A fixture's outer half footprint from its inner one: an open box's upright wall
+        stands outside its footprint, a board's edge is the footprint's own. (Leaning walls
+        and a lip reach farther: the episode's table grows to fit them, fixture.py.)"""
+        return inner_half + (0.0 if self.fixture == "board" else self.wall_thickness)
 
     def fixture_outer_half(self, axis: int) -> float:
         """Half the largest outer footprint the spec draws along the fixture's x (0) or y (1)."""

@@ -465,6 +465,13 @@ def _draw_table(scene: SceneConfig, geometry: dict, x: float, y: float, yaw: flo
     axes, or with ``table_edge_margin`` anywhere along the fixture's axes that keeps its outer
     footprint that far inside the table's edges."""
     half_x, half_y = (_uniform(rng, side) / 2 for side in scene.table_size)
+    # The spec's table sizes fit its largest upright-walled box (SceneConfig validates that);
+    # a box whose walls lean out or carry a lip reaches farther, and a table drawn too small
+    # for it grows to fit. For upright walls this never changes a draw.
+    reach = (scene.table_edge_margin if scene.table_edge_margin is not None
+             else math.sqrt(2.0) * scene.table_offset)
+    half_x = max(half_x, _outer_half(scene, geometry, "half_x") + reach)
+    half_y = max(half_y, _outer_half(scene, geometry, "half_y") + reach)
     height = _uniform(rng, scene.table_height)
     if scene.table_edge_margin is None:
         toff = scene.table_offset
