@@ -199,3 +199,17 @@ def test_the_physics_keeps_every_solid_of_a_many_piece_fixture():
             assert reached == pytest.approx([half_y, half_y, half_x, half_x], abs=0.004), z
     finally:
         world.close()
+
+
+def test_no_wall_piece_is_a_sliver():
+    """Strip cuts and handle-hole edges never leave a piece thinner than SLIVER up the slope
+    (a box of a fraction of a millimetre is not something to hand a physics engine)."""
+    from training.fixture import SLIVER
+
+    for flare in np.linspace(0.0, 20.0, 41):
+        for height in (0.1, 0.17, 0.23, 0.3):
+            tote = fixture_from_record({**TRAY.to_record(), "flare_deg": float(flare),
+                                        "wall_height": height})
+            walls = [half for half, _, turn in tote.solid_boxes()[1:]
+                     if half[2] < height]                  # the wall pieces (not the rim)
+            assert min(2 * half[2] for half in walls) >= SLIVER - 1e-9, (flare, height)

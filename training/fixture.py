@@ -187,6 +187,7 @@ HANDLE_HEIGHT = 0.035   # m
 HANDLE_DROP = 0.025     # m
 HANDLE_MIN_WALL = HANDLE_DROP + HANDLE_HEIGHT + 0.03   # m of wall, along its slope
 FIN_MAX = 0.01          # m: how far a leaning wall's strip may reach past the next wall
+SLIVER = 0.005          # m: no strip of a wall is thinner than this
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -275,14 +276,14 @@ class Fixture(PlacedFixture):
         opening = None
         if hole and length >= HANDLE_MIN_WALL:
             opening = (length - HANDLE_DROP - HANDLE_HEIGHT, length - HANDLE_DROP)
-            cuts = sorted(set(cuts) | set(opening))
+            # The hole's edges replace strip cuts within 5 mm of them: no sliver of a strip.
+            cuts = sorted({c for c in cuts if min(abs(c - e) for e in opening) > SLIVER}
+                          | set(opening))
         hinge_point = np.zeros(3)
         hinge_point[axis] = sign * hinge
         width = min(HANDLE_WIDTH, self.half_y)           # the hole's
         solids = []
         for u0, u1 in zip(cuts[:-1], cuts[1:]):
-            if u1 - u0 < 1e-6:
-                continue
             span = across + u1 * math.cos(lean) * self._flare + (t if axis == 0 else 0.0)
             in_hole = opening is not None and opening[0] <= u0 and u1 <= opening[1]
             for a0, a1 in ([(-span, -width / 2), (width / 2, span)] if in_hole
