@@ -454,9 +454,11 @@ def _outer_half(scene: SceneConfig, geometry: dict, key: str) -> float:
         return geometry[key]
     if not (geometry["flare_deg"] or geometry["lip_width"]):
         return geometry[key] + scene.wall_thickness
-    lean = math.radians(geometry["flare_deg"])
-    return (geometry[key] + geometry["wall_height"] * math.tan(lean)
-            + scene.wall_thickness / math.cos(lean) + geometry["lip_width"])
+    # Leaning walls and a lip: the opening at the rim plus the rim's width, as the box's own
+    # region gives them (placed anywhere: only its shape matters here).
+    region = Fixture(**geometry, x=0.0, y=0.0, yaw=0.0, base_z=0.0).region()
+    axis = 0 if key == "half_x" else 1
+    return float(region.half_at(region.top)[axis] + region.edge_at(region.top))
 
 
 def _draw_table(scene: SceneConfig, geometry: dict, x: float, y: float, yaw: float,
