@@ -1,15 +1,16 @@
 """Open boxes shaped like real totes and trays (training/fixture.py ``Fixture``): walls leaning
-out, a lip round the rim, handle holes in the end walls. What the physics builds, what the
+out, a lip round the rim, handle holes in the x walls. What the physics builds, what the
 renderer draws and what discovery measures must agree on that geometry."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from task_outcome_ros.labels import FIXTURE
+from task_outcome_ros.labels import DEFAULT_TABLE, FIXTURE
 from training.config import ConfigError, SceneConfig
 from training.fixture import (
     FIN_MAX,
@@ -21,7 +22,7 @@ from training.fixture import (
     fixture_from_record,
 )
 from training.geometry import geometric_outcome, object_measurements
-from training.render import Camera, SceneBox, look_at, render
+from training.render import Camera, look_at, render, scene_boxes
 from training.scene import load_scene
 
 pytestmark = pytest.mark.unit
@@ -94,34 +95,31 @@ def test_a_handle_hole_opens_each_end_wall_below_the_rim():
 
 
 def test_the_renderer_draws_the_same_walls_as_pybullets_ray_test():
-    """The renderer turns solids with ``euler_rotation``, the physics with pybullet's own
-    quaternions: per pixel, both must hit the fixture in the same places."""
-    pb = pytest.importorskip("pybullet")
-    client = pb.connect(pb.DIRECT)
+    """The renderer places turned solids with ``euler_rotation`` under the fixture's yaw
+    (``render.scene_boxes``), the independent set with pybullet's own quaternions
+    (``independent.RayWorld``): per pixel, both must hit the fixture in the same places, for
+    a tote turned and moved off the origin."""
+    pytest.importorskip("pybullet")
+    from training.independent import RayWorld
+
+    placed = replace(TRAY, x=0.12, y=-0.07, yaw=0.7, base_z=0.01)
+    episode = {"fixture": placed.to_record(), "objects": []}
+    pos = np.array([0.8, -0.5, 0.66])
+    cam = Camera(96, 72, 80.0, 80.0, 47.5, 35.5, pos, look_at(pos, np.array([0.12, -0.07, 0])))
+    room_floor = placed.room_floor_z
+    depth, labels, _ = render(scene_boxes(episode, [], SceneConfig(), DEFAULT_TABLE),
+                              room_floor, cam)
+    world = RayWorld()
     try:
-        solids, bodies = [], set()
-        for half, centre, turn in TRAY.solid_boxes():
-            col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(half),
-                                          physicsClientId=client)
-            bodies.add(pb.createMultiBody(0, col, basePosition=list(centre),
-                                          baseOrientation=pb.getQuaternionFromEuler(turn),
-                                          physicsClientId=client))
-            solids.append(SceneBox(np.array(half), np.array(centre), euler_rotation(turn),
-                                   FIXTURE))
-        pos = np.array([0.7, -0.45, 0.65])
-        cam = Camera(96, 72, 80.0, 80.0, 47.5, 35.5, pos, look_at(pos, np.zeros(3)))
-        depth, labels, _ = render(solids, -0.5, cam)
-        u, v = np.meshgrid(np.arange(96), np.arange(72))
-        rays = cam.rotation @ np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy,
-                                        np.ones_like(u, float)]).reshape(3, -1)
-        hits = pb.rayTestBatch([list(pos)] * rays.shape[1], (pos[:, None] + 4 * rays).T.tolist(),
-                               physicsClientId=client)
+        bodies = world.build(episode, [], SceneConfig(), DEFAULT_TABLE)
+        view = {"width": 96, "height": 72, "fx": 80.0, "fy": 80.0, "cx": 47.5, "cy": 35.5,
+                "position": pos.tolist(), "rotation": cam.rotation.tolist()}
+        _, theirs, _ = world.cast(view, bodies)
     finally:
-        pb.disconnect(client)
-    theirs = np.array([h[0] in bodies for h in hits])
-    ours = labels.reshape(-1) == FIXTURE
-    assert theirs.sum() > 1500
-    assert np.mean(ours == theirs) > 0.98        # all but silhouette pixels
+        world.close()
+    ours = labels == FIXTURE
+    assert (theirs == FIXTURE).sum() > 1500
+    assert np.mean(ours == (theirs == FIXTURE)) > 0.995       # all but silhouette pixels
 
 
 @pytest.mark.parametrize("where,size,expected", [
@@ -210,6 +208,8 @@ def test_no_wall_piece_is_a_sliver():
         for height in (0.1, 0.17, 0.23, 0.3):
             tote = fixture_from_record({**TRAY.to_record(), "flare_deg": float(flare),
                                         "wall_height": height})
-            walls = [half for half, _, turn in tote.solid_boxes()[1:]
-                     if half[2] < height]                  # the wall pieces (not the rim)
+            solids = tote.solid_boxes()
+            rim = 4 if tote.flare_deg or tote.lip_width else 0   # the flat rim comes last
+            walls = [half for half, _, _ in solids[1:len(solids) - rim]]
+            assert len(walls) >= 4
             assert min(2 * half[2] for half in walls) >= SLIVER - 1e-9, (flare, height)

@@ -179,9 +179,11 @@ class PlacedFixture:
 PLAIN_WALLS = {"flare_deg": 0.0, "lip_width": 0.0, "handle_holes": False}
 
 
-# A handle hole in an x wall (the box's ends): as wide as this or half the wall's inner
-# length, this tall, its top this far below the rim along the wall; walls too short to keep
-# that much wall below it have none.
+# A handle hole in each x wall: the box's ends when its x side is the longer, which the tote
+# spec's independent draws of the two sides make about three totes in four (the others carry
+# their holes in the long sides, as some crates do). The hole is HANDLE_WIDTH wide or half
+# the wall's inner length, whichever is smaller, this tall, its top this far below the rim
+# along the wall; walls too short to keep that much wall below it have none.
 HANDLE_WIDTH = 0.12     # m
 HANDLE_HEIGHT = 0.035   # m
 HANDLE_DROP = 0.025     # m
@@ -204,7 +206,7 @@ class Fixture(PlacedFixture):
     bottom_thickness: float
     flare_deg: float = 0.0
     lip_width: float = 0.0
-    handle_holes: bool = False
+    handle_holes: bool = False   # holes wanted: walls shorter than HANDLE_MIN_WALL get none
 
     kind = "open_box"
 
@@ -250,8 +252,12 @@ class Fixture(PlacedFixture):
         """One wall leaning out by flare_deg from the inner footprint's edge. A leaning wall
         narrows towards its foot, which one box cannot: it is a stack of strips up its slope,
         each as long as the opening at its own top (an x wall also spans the corners), so a
-        strip's foot reaches past the next wall by at most ``FIN_MAX``. A handle hole takes
-        the middle of the strips it spans."""
+        strip's foot reaches past the next wall by about ``FIN_MAX`` at most (a few mm more
+        beside a handle hole, where a cut gave way to the hole's edge). A handle hole takes
+        the middle of the strips it spans. The first strip's foot is square to the slope, so
+        its outer corner dips ``t sin(flare)`` below the base (3 mm at 20 deg), into the
+        support, where neither the physics (static solids do not collide) nor a camera sees
+        it."""
         t, h = self.wall_thickness, self.wall_height
         lean = math.radians(self.flare_deg)
         length = h / math.cos(lean)                      # up the slope
