@@ -173,6 +173,39 @@ def test_augmentation_noise_level_zero_adds_no_noise():
     assert ((inner - 2.0).abs() <= 0.08 + 1e-6).all()
 
 
+def test_augmentation_holes_take_depth_and_labels_from_large_regions_and_nothing_else():
+    from training.train import HOLE_MAX_SHARE, augment
+
+    depth = torch.rand(32, 120, 160) + 1.0
+    labels = torch.randint(0, 4, (32, 120, 160))
+    args = (torch.ones_like(depth), labels)
+    plain = augment(depth.clone(), *args, torch.Generator().manual_seed(7))
+    holed = augment(depth.clone(), *args, torch.Generator().manual_seed(7), holes=0.5)
+    gone = (holed.labels == 255) & (plain.labels != 255)     # ignored, not relabelled
+    # Drawn last: outside the holes every output is that of a run without them.
+    assert torch.equal(holed.depth, plain.depth)
+    assert torch.equal(holed.valid[~gone], plain.valid[~gone])
+    assert torch.equal(holed.labels[~gone], plain.labels[~gone])
+    assert (holed.valid[gone] == 0).all()
+    share = gone.float().mean((1, 2))
+    with_holes = share > 0
+    assert 8 <= with_holes.sum() <= 24                       # about half the images
+    assert share.max() <= HOLE_MAX_SHARE + 0.01
+    assert 0.1 < share[with_holes].mean() < 0.25             # U(0, 0.35) of each image
+    # Large regions, not speckles: most lost pixels have all four neighbours lost too (0.86
+    # here; scattered pixels at this density would give under 0.01).
+    inner = gone[:, 1:-1, 1:-1]
+    surrounded = (inner & gone[:, :-2, 1:-1] & gone[:, 2:, 1:-1] & gone[:, 1:-1, :-2]
+                  & gone[:, 1:-1, 2:])
+    assert surrounded.sum() > 0.6 * inner.sum()
+
+
+def test_augmentation_holes_are_refused_outside_zero_to_one():
+    with pytest.raises(ConfigError, match="aug_holes"):
+        TrainConfig(aug_holes=1.5).validate()
+    assert TrainConfig(aug_holes=0.5).validate().aug_holes == 0.5
+
+
 def test_augmentation_moves_the_intrinsics_with_the_image():
     from test_floor import _tilted_scene
 

@@ -159,6 +159,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--aug-noise", type=float, default=None,
                    help="re-drawn training noise per image: up to this many times the "
                         "sensor's own (default 1; 0 = off)")
+    p.add_argument("--aug-holes", type=float, default=None,
+                   help="share of training images that lose their depth over large smooth "
+                        "regions (up to 35 %% of the image), as real frames lose whole "
+                        "surfaces (default 0 = off)")
     p.add_argument("--lovasz-weight", type=float, default=None,
                    help="weight of the per-image outcome IoU (Lovász) loss added to "
                         "cross-entropy (default 0.5; 0 = off)")
@@ -208,7 +212,8 @@ def resolve_train_config(args: argparse.Namespace):
               "base_width": "base_width", "max_minutes": "max_minutes", "device": "device",
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
               "channels_last": "channels_last", "near_boundary_weight": "near_boundary_weight",
-              "aug_noise": "aug_noise", "lovasz_weight": "lovasz_weight",
+              "aug_noise": "aug_noise", "aug_holes": "aug_holes",
+              "lovasz_weight": "lovasz_weight",
               "object_balance_pixels": "object_balance_pixels",
               "relief_window_px": "relief_window_px",
               "relief_smoothing_px": "relief_smoothing_px",

@@ -777,6 +777,10 @@ class TrainConfig:
     # Re-drawn axial noise per training image: U(0, aug_noise) x the sensor's own noise at the
     # working size (train.SENSOR_NOISE_PER_Z2). Before model 0.1.5 it was ~7x the sensor's.
     aug_noise: float = 1.0
+    # Share of training images that lose their depth over large smooth regions, up to 35 % of
+    # the image (train.no_return_holes: real frames lose whole surfaces, our sensor models
+    # mostly speckles); labels there are ignored. 0 = off.
+    aug_holes: float = 0.0
     # Weight of the per-image outcome IoU (Lovász-softmax) loss added to cross-entropy
     # (losses.py); 0 = cross-entropy alone. 0.5 (model 0.1.6): fewer split objects; image
     # all-correct 0.982 -> 0.986 (validation), 0.980 -> 0.982 (seed-1), 0.980 -> 0.987 on the
@@ -851,6 +855,7 @@ class TrainConfig:
         _check_range(o, "class_weight_power", self.class_weight_power, 0.0, 2.0)
         _check_range(o, "near_boundary_weight", self.near_boundary_weight, 1.0, 100.0)
         _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
+        _check_range(o, "aug_holes", self.aug_holes, 0.0, 1.0)
         _check_range(o, "lovasz_weight", self.lovasz_weight, 0.0, 100.0)
         _check_int(o, "object_balance_pixels", self.object_balance_pixels, 0, 1_000_000)
         from task_outcome_ros.model import (

@@ -134,7 +134,7 @@ class Batch(NamedTuple):
 def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
             gen: torch.Generator, noise_level: float = 1.0,
             intrinsics: torch.Tensor | None = None, nearest: torch.Tensor | None = None,
-            ) -> Batch:
+            holes: float = 0.0) -> Batch:
     """Batch augmentation that keeps labels honest. depth/valid float (N,h,w), labels long.
 
     ``noise_level`` (``TrainConfig.aug_noise``): each image gets re-drawn axial noise of
@@ -148,7 +148,10 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
 
     ``nearest`` (N, h, w), the near-side depths, moves with ``depth`` (mirror, shift,
     distance change) and gets noise of the same level drawn on its own after all the other
-    draws, so the random stream of a run without it is unchanged."""
+    draws, so the random stream of a run without it is unchanged.
+
+    ``holes`` (``TrainConfig.aug_holes``): that share of the images loses its depth over
+    ``no_return_holes``, labels ignored there; drawn last, so 0 leaves the stream as it was."""
     n = depth.shape[0]
     flip = torch.rand(n, generator=gen) < 0.5           # a mirrored scene is a valid scene
     depth = torch.where(flip[:, None, None], depth.flip(-1), depth)
@@ -197,7 +200,40 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     if nearest is not None:
         nearest = (nearest * scale
                    + torch.randn(nearest.shape, generator=gen) * level * nearest ** 2)
+    if holes > 0:
+        gone = no_return_holes(depth.shape, holes, gen)
+        valid = torch.where(gone, torch.zeros_like(valid), valid)
+        labels = torch.where(gone, torch.full_like(labels, IGNORE), labels)
     return Batch(depth, valid, labels, intrinsics, nearest)
+
+
+# Real depth frames lose far more than our sensor models drop: the six bundled real frames of
+# totes (training/real_frames/arc2017) have 24-38 % of their pixels without depth, in large
+# regions (dark plastic, shiny metal, beyond the projector's field, the frame's edges), where
+# the tote spec's renders have 6 % (median; 15 % at the 95th percentile), mostly in small
+# speckles and shadows. What is left between such regions is fragments of surfaces, which
+# a network that never saw them reads as objects.
+HOLE_MAX_SHARE = 0.35        # of the image, at most, per image that gets holes
+HOLE_GRID_CELLS = (3, 12)    # the random field's cells across the image: blob scale
+
+
+def no_return_holes(shape: tuple[int, int, int], share: float, gen: torch.Generator
+                    ) -> torch.Tensor:
+    """(N, h, w) bool: regions without depth in ``share`` of the images, each covering
+    U(0, HOLE_MAX_SHARE) of its image in smooth blobs: a coarse uniform random field
+    (``HOLE_GRID_CELLS`` across, one size per batch), upsampled bicubically, above its own
+    quantile."""
+    n, h, w = shape
+    cols = int(torch.randint(HOLE_GRID_CELLS[0], HOLE_GRID_CELLS[1] + 1, (1,), generator=gen))
+    rows = max(2, round(cols * h / w))
+    field = torch.rand(n, 1, rows + 1, cols + 1, generator=gen)
+    field = F.interpolate(field, size=(h, w), mode="bicubic", align_corners=True)[:, 0]
+    has_holes = torch.rand(n, generator=gen) < share
+    cover = HOLE_MAX_SHARE * torch.rand(n, generator=gen) * has_holes
+    ranked = field.reshape(n, -1).sort(dim=1).values
+    keep = ((1.0 - cover) * (h * w - 1)).round().long().clamp(0, h * w - 1)
+    threshold = ranked.gather(1, keep[:, None])[:, 0]
+    return (field > threshold[:, None, None]) & has_holes[:, None, None]
 
 
 def fitted_epochs(epochs: int, epoch_s: float, max_minutes: float) -> int:
@@ -279,7 +315,7 @@ def autocast_factory(precision: str, device_type: str):
 
 
 def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
-                 noise_level: float = 1.0) -> Batch:
+                 noise_level: float = 1.0, holes: float = 0.0) -> Batch:
     """The cached images ``idx`` as a ``Batch``, augmented unless ``gen`` is None (the
     training loop's data step; bench/train_step.py times this very function). intrinsics and
     nearest are None unless ``arrays`` holds them (``TrainConfig.camera_intrinsics``,
@@ -291,7 +327,7 @@ def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
                   tensor("labels", np.int64), tensor("intrinsics", np.float32),
                   tensor("nearest", np.float32))
     if gen is not None:
-        batch = augment(*batch[:3], gen, noise_level, batch.intrinsics, batch.nearest)
+        batch = augment(*batch[:3], gen, noise_level, batch.intrinsics, batch.nearest, holes)
     return batch
 
 
@@ -411,7 +447,7 @@ RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
 ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
                       "relief_window_px": 0, "relief_smoothing_px": 0, "relief_base_px": 0,
-                      "relief_noise_sds": 0.0, "nearest_height": False}
+                      "relief_noise_sds": 0.0, "nearest_height": False, "aug_holes": 0.0}
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
@@ -553,7 +589,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         for b in bar:
             idx = np.sort(order[b * cfg.batch_size:(b + 1) * cfg.batch_size])
             depth, valid, labels, intrinsics, nearest = gather_batch(
-                train_arrays, idx, gen if cfg.augment else None, aug_noise)
+                train_arrays, idx, gen if cfg.augment else None, aug_noise, cfg.aug_holes)
             x = network_input(depth, valid, norm, intrinsics, nearest=nearest).to(
                 device, memory_format=memory_format)
             labels = labels.to(device)
