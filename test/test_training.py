@@ -174,7 +174,8 @@ def test_augmentation_noise_level_zero_adds_no_noise():
 
 
 def test_augmentation_holes_take_depth_and_labels_from_large_regions_and_nothing_else():
-    from training.train import HOLE_MAX_SHARE, augment
+    from training.holes import HOLE_MAX_SHARE
+    from training.train import augment
 
     depth = torch.rand(32, 120, 160) + 1.0
     labels = torch.randint(0, 4, (32, 120, 160))
@@ -591,6 +592,13 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
     tilted, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
                                   Stress(support_tilt_deg=6.0), table)
     assert not np.allclose(np.nan_to_num(tilted), np.nan_to_num(depth))
+    holed, holed_labels, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
+                                            Stress(lost_depth_share=0.3), table)
+    lost = np.isfinite(depth) & ~np.isfinite(holed)       # 30 % of the frame, minus old holes
+    assert 0.2 < lost.mean() <= 0.3 + 1e-3 and (holed_labels[lost] == 255).all()
+    kept = np.isfinite(holed)
+    np.testing.assert_array_equal(holed[kept], depth[kept])
+    np.testing.assert_array_equal(holed_labels[kept], labels[kept])
 
     ckpt = make_checkpoint(tmp_path / "success_everywhere.pt", favour=SUCCESS)
     tof, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
@@ -599,7 +607,7 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
                                   Stress(sensor_model="kinect_v1"), table)
     assert not np.allclose(np.nan_to_num(tof), np.nan_to_num(kinect))
     sweeps = {"camera_roll_deg": (0.0, 10.0), "resolution": ("640x480", "320x240"),
-              "sensor_model": ("", "tof")}
+              "sensor_model": ("", "tof"), "lost_depth_share": (0.0, 0.3)}
     report = run_robustness(ckpt, small_run, tmp_path / "rob", images=2, sweeps=sweeps,
                             progress=False)
     saved = load_json(tmp_path / "rob" / "robustness.json")

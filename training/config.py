@@ -778,7 +778,7 @@ class TrainConfig:
     # working size (train.SENSOR_NOISE_PER_Z2). Before model 0.1.5 it was ~7x the sensor's.
     aug_noise: float = 1.0
     # Share of training images that lose their depth over large smooth regions, up to 35 % of
-    # the image (train.no_return_holes: real frames lose whole surfaces, our sensor models
+    # the image (holes.no_return_holes: real frames lose whole surfaces, our sensor models
     # mostly speckles); labels there are ignored. 0 = off.
     aug_holes: float = 0.0
     # Weight of the per-image outcome IoU (Lovász-softmax) loss added to cross-entropy

@@ -15,7 +15,10 @@ image-level metric. Factors, each swept beyond what training drew:
   ``tof``), instead of the spec's mix;
 - ``focal_error``: camera_info's focal length off by this fraction (the true camera is not);
 - ``camera_info``: with and without camera_info;
-- ``resolution``: other image sizes, with the focal length scaled to keep the field of view.
+- ``resolution``: other image sizes, with the focal length scaled to keep the field of view;
+- ``lost_depth_share``: this share of each frame loses its depth in smooth blobs
+  (``holes.lose_depth``), as real frames lose whole surfaces; their labels are ignored, so
+  an object wholly inside them is not in the image's truth.
 
 Calibration error the spec draws for camera_info is left out of every point, so that
 ``focal_error`` is the only one. Writes ``robustness.json`` (per factor its values and, at
@@ -48,6 +51,7 @@ from training.dataset import load_manifest
 from training.discover import load_outcomes
 from training.evaluate import same_task
 from training.fixture import episode_fixture
+from training.holes import lose_depth
 from training.render import render_episode
 from training.seeding import episode_rng
 from training.stats import wilson_interval
@@ -64,6 +68,7 @@ SWEEPS: dict[str, tuple] = {
     "focal_error": (0.0, -0.08, -0.04, 0.04, 0.08),
     "camera_info": (True, False),
     "resolution": ("640x480", "320x240", "1280x720"),
+    "lost_depth_share": (0.0, 0.15, 0.3),
 }
 
 
@@ -78,6 +83,7 @@ class Stress:
     focal_error: float = 0.0
     camera_info: bool = True
     resolution: str = ""   # "WxH"; "" = the envelope's own
+    lost_depth_share: float = 0.0
 
 
 def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
@@ -92,12 +98,16 @@ def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
                                       tilt_azimuth_deg=azimuth)
     out = render_episode({**episode, "fixture": fixture.to_record()}, outcomes,
                          _stressed_config(cfg, stress), seed, table)
+    depth, labels = out["depth"], out["labels"]
+    if stress.lost_depth_share:
+        blobs = int(episode_rng(seed, episode["episode"], "lost_depth").integers(2**31))
+        depth, labels = lose_depth(depth, labels, stress.lost_depth_share, blobs)
     intrinsics = None
     if stress.camera_info:
         camera = Intrinsics.from_record(out["record"]["camera"])
         f = camera.fx * (1.0 + stress.focal_error)
         intrinsics = dataclasses.replace(camera, fx=f, fy=f)
-    return out["depth"], out["labels"], intrinsics
+    return depth, labels, intrinsics
 
 
 def _stressed_config(cfg: DatasetConfig, stress: Stress) -> DatasetConfig:

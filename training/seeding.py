@@ -13,10 +13,11 @@ import numpy as np
 # "sensor" the per-frame sensor parameters, "sensor_model" which sensor model a frame gets,
 # "camera_info" the calibration error of what the camera reports: streams of their own, so
 # a spec with fixed values draws exactly what it drew before; "scenery" what stands around
-# the fixture that nobody placed.
+# the fixture that nobody placed; "lost_depth" where the robustness suite's frames lose
+# their depth (holes.lose_depth).
 STAGE_STREAMS = {"simulate": 1, "render": 2, "noise": 3, "split": 4, "augment": 5,
                  "fixture": 6, "sensor": 7, "robustness": 8, "sensor_model": 9,
-                 "camera_info": 10, "scenery": 11}
+                 "camera_info": 10, "scenery": 11, "lost_depth": 12}
 
 
 def episode_seed(run_seed: int, episode: int, stage: str) -> list[int]:

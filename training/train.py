@@ -63,6 +63,7 @@ from training.config import (
 )
 from training.dataset import load_cache, load_manifest, manifest_table
 from training.hard_cases import episode_hard_cases
+from training.holes import no_return_holes
 from training.losses import (
     OBJECT_BALANCE_MAX_WEIGHT,
     object_balance_weights,
@@ -151,7 +152,8 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     draws, so the random stream of a run without it is unchanged.
 
     ``holes`` (``TrainConfig.aug_holes``): that share of the images loses its depth over
-    ``no_return_holes``, labels ignored there; drawn last, so 0 leaves the stream as it was."""
+    ``holes.no_return_holes``, labels ignored there; drawn last, so 0 leaves the stream as
+    it was."""
     n = depth.shape[0]
     flip = torch.rand(n, generator=gen) < 0.5           # a mirrored scene is a valid scene
     depth = torch.where(flip[:, None, None], depth.flip(-1), depth)
@@ -205,35 +207,6 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
         valid = torch.where(gone, torch.zeros_like(valid), valid)
         labels = torch.where(gone, torch.full_like(labels, IGNORE), labels)
     return Batch(depth, valid, labels, intrinsics, nearest)
-
-
-# Real depth frames lose far more than our sensor models drop: the six bundled real frames of
-# totes (training/real_frames/arc2017) have 24-38 % of their pixels without depth, in large
-# regions (dark plastic, shiny metal, beyond the projector's field, the frame's edges), where
-# the tote spec's renders have 6 % (median; 15 % at the 95th percentile), mostly in small
-# speckles and shadows. What is left between such regions is fragments of surfaces, which
-# a network that never saw them reads as objects.
-HOLE_MAX_SHARE = 0.35        # of the image, at most, per image that gets holes
-HOLE_GRID_CELLS = (3, 12)    # the random field's cells across the image: blob scale
-
-
-def no_return_holes(shape: tuple[int, int, int], share: float, gen: torch.Generator
-                    ) -> torch.Tensor:
-    """(N, h, w) bool: regions without depth in ``share`` of the images, each covering
-    U(0, HOLE_MAX_SHARE) of its image in smooth blobs: a coarse uniform random field
-    (``HOLE_GRID_CELLS`` across, one size per batch), upsampled bicubically, above its own
-    quantile."""
-    n, h, w = shape
-    cols = int(torch.randint(HOLE_GRID_CELLS[0], HOLE_GRID_CELLS[1] + 1, (1,), generator=gen))
-    rows = max(2, round(cols * h / w))
-    field = torch.rand(n, 1, rows + 1, cols + 1, generator=gen)
-    field = F.interpolate(field, size=(h, w), mode="bicubic", align_corners=True)[:, 0]
-    has_holes = torch.rand(n, generator=gen) < share
-    cover = HOLE_MAX_SHARE * torch.rand(n, generator=gen) * has_holes
-    ranked = field.reshape(n, -1).sort(dim=1).values
-    keep = ((1.0 - cover) * (h * w - 1)).round().long().clamp(0, h * w - 1)
-    threshold = ranked.gather(1, keep[:, None])[:, 0]
-    return (field > threshold[:, None, None]) & has_holes[:, None, None]
 
 
 def fitted_epochs(epochs: int, epoch_s: float, max_minutes: float) -> int:
