@@ -209,7 +209,8 @@ def test_the_default_and_older_tote_tasks_draw_what_they_always_drew(spec, tmp_p
     if spec == "tote-0.8.0":  # a spec with a fixed (x, y) table and table_offset still loads
         data = yaml.safe_load((SCENES_DIR / "tote.yaml").read_text())
         data["scene"].pop("table_edge_margin")
-        for newer in ("wall_flare_deg", "lip_width", "handle_hole_share", "neighbour_share"):
+        for newer in ("wall_flare_deg", "lip_width", "handle_hole_share", "plain_wall_share",
+                      "neighbour_share"):
             data["scene"].pop(newer, None)
         data["scene"].update(table_size=[1.8, 1.4], table_offset=0.05)
         (tmp_path / "tote.yaml").write_text(yaml.safe_dump(data))

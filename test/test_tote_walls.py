@@ -138,15 +138,17 @@ def test_measurements_follow_the_leaning_walls_and_the_lip(where, size, expected
     assert geometric_outcome(measured) == expected, measured
 
 
-def test_the_tote_spec_draws_leaning_walls_lips_and_holes_that_fit_their_table():
+def test_the_tote_spec_draws_plain_and_leaning_walls_lips_and_holes_that_fit_their_table():
     scene = load_scene("tote").scene
     rng = np.random.default_rng(3)
-    flares, lips, holes = [], [], []
+    flares, lips, holes, plain = [], [], [], []
     for _ in range(300):
         fixture = draw_fixture(scene, float(rng.uniform(-1.5, 1.5)), 0.0, rng)
-        flares.append(fixture.flare_deg)
-        lips.append(fixture.lip_width)
-        holes.append(fixture.handle_holes)
+        plain.append(fixture.flare_deg == fixture.lip_width == 0 and not fixture.handle_holes)
+        if not plain[-1]:
+            flares.append(fixture.flare_deg)
+            lips.append(fixture.lip_width)
+            holes.append(fixture.handle_holes)
         assert fixture_from_record(fixture.to_record()) == fixture
         # Its outer footprint stays on the table, wherever on it the tote stands.
         reach = fixture.outer_half_footprint()
@@ -158,12 +160,15 @@ def test_the_tote_spec_draws_leaning_walls_lips_and_holes_that_fit_their_table()
     assert 0.0 <= min(flares) < 2.0 and 18.0 < max(flares) <= 20.0
     assert 0.0 <= min(lips) and max(lips) <= 0.03
     assert 0.4 < np.mean(holes) < 0.6
+    assert 0.22 < np.mean(plain) < 0.38           # plain_wall_share: the old spec's totes
 
 
 @pytest.mark.parametrize("fields,error", [
     ({"wall_flare_deg": [0.0, 40.0]}, "wall_flare_deg"),
     ({"lip_width": [0.0, 0.5]}, "lip_width"),
     ({"handle_hole_share": 1.5}, "handle_hole_share"),
+    ({"plain_wall_share": -0.1}, "plain_wall_share"),
+    ({"fixture": "board", "plain_wall_share": 0.3}, "a board has none"),
     ({"fixture": "board", "wall_flare_deg": [0.0, 5.0]}, "a board has none"),
 ])
 def test_bad_wall_fields_are_refused(fields, error):

@@ -80,9 +80,13 @@ class SceneConfig:
     # have handle holes. Each is drawn per episode (fixture.py ``Fixture``); the defaults
     # leave the box as it was. The walls' slope from vertical (deg, top outwards), the lip's
     # width beyond the walls (m), and the share of boxes with a handle hole in each x wall.
+    # ``plain_wall_share`` of the boxes get none of the three (upright walls, no lip, no
+    # holes: the box of a spec without them), so that ranges drawn uniformly still cover
+    # plain boxes, which many real crates are, and not one box in a hundred.
     wall_flare_deg: tuple[float, float] = (0.0, 0.0)
     lip_width: tuple[float, float] = (0.0, 0.0)
     handle_hole_share: float = 0.0
+    plain_wall_share: float = 0.0
     # A board: width (x) and depth (y) of its top, its top's height above the support, its
     # thickness, the height of the region above it, and the share of episodes in which it hangs
     # on a wall behind it instead of standing on four legs. Its front edge is its -y side.
@@ -186,10 +190,11 @@ class SceneConfig:
         _check_interval(o, "wall_flare_deg", self.wall_flare_deg, 0.0, 30.0)
         _check_interval(o, "lip_width", self.lip_width, 0.0, 0.1)
         _check_range(o, "handle_hole_share", self.handle_hole_share, 0.0, 1.0)
+        _check_range(o, "plain_wall_share", self.plain_wall_share, 0.0, 1.0)
         if self.fixture == "board" and (self.wall_flare_deg[1] or self.lip_width[1]
-                                        or self.handle_hole_share):
-            raise ConfigError(f"{o}: wall_flare_deg, lip_width and handle_hole_share shape an "
-                              "open box's walls; a board has none")
+                                        or self.handle_hole_share or self.plain_wall_share):
+            raise ConfigError(f"{o}: wall_flare_deg, lip_width, handle_hole_share and "
+                              "plain_wall_share shape an open box's walls; a board has none")
         _check_interval(o, "board_width", self.board_width, 0.1, 5.0)
         _check_interval(o, "board_depth", self.board_depth, 0.1, 5.0)
         _check_interval(o, "board_height", self.board_height, 0.05, 3.0)

@@ -440,6 +440,8 @@ def draw_fixture(scene: SceneConfig, yaw: float, base_z: float,
         geometry["lip_width"] = _uniform(rng, scene.lip_width)
         geometry["handle_holes"] = bool(scene.handle_hole_share > 0
                                         and rng.random() < scene.handle_hole_share)
+        if scene.plain_wall_share > 0 and rng.random() < scene.plain_wall_share:
+            geometry.update(PLAIN_WALLS)
     offset = scene.fixture_offset
     x, y = (float(v) for v in rng.uniform(-offset, offset, 2)) if offset > 0 else (0.0, 0.0)
     table = None
