@@ -108,7 +108,8 @@ def test_a_rendered_neighbour_only_ever_adds_background():
     ({"neighbour_contents": (0, 2.5)}, "whole number"),
     ({"neighbour_gap": (0.2, 0.1)}, "min must not exceed max"),
     ({"neighbour_share": 0.5, "fixture": "board", "wall_flare_deg": (0.0, 0.0),
-      "lip_width": (0.0, 0.0), "handle_hole_share": 0.0}, "copies of an open box"),
+      "lip_width": (0.0, 0.0), "handle_hole_share": 0.0, "plain_wall_share": 0.0},
+     "copies of an open box"),
 ])
 def test_bad_neighbour_fields_are_refused(fields, error):
     with pytest.raises(ConfigError, match=error):
