@@ -70,6 +70,8 @@ SWEEPS: dict[str, tuple] = {
     "resolution": ("640x480", "320x240", "1280x720"),
     "lost_depth_share": (0.0, 0.15, 0.3),
 }
+# Factors plotted on their own y range (plot_robustness): they may take a model to chance.
+OWN_RANGE_FACTORS = frozenset({"lost_depth_share"})
 
 
 @dataclass(frozen=True)
@@ -203,13 +205,19 @@ def plot_robustness(path: Path, report: dict) -> None:
                              squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
-    # One y range for all panels, from just under the lowest rate (or interval) to 1: the
-    # rates live near the top, and 0-1 would flatten the intervals into the markers.
-    lows = [v for e in factors.values() for v in
-            (np.array(e["ci95"])[:, 0] if "ci95" in e else e["image_all_correct"])]
-    bottom = max(0.0, math.floor(min(lows) * 20) / 20 - 0.05)
+    # One y range for the panels, from just under the lowest rate (or interval) to 1: the
+    # rates live near the top, and 0-1 would flatten the intervals into the markers. A factor
+    # that can break a model outright (OWN_RANGE_FACTORS) gets its own, so that it does not
+    # flatten the others.
+    def bottom_of(entries) -> float:
+        lows = [v for e in entries for v in
+                (np.array(e["ci95"])[:, 0] if "ci95" in e else e["image_all_correct"])]
+        return max(0.0, math.floor(min(lows) * 20) / 20 - 0.05) if lows else 0.0
+
+    shared = bottom_of([e for f, e in factors.items() if f not in OWN_RANGE_FACTORS])
     for ax, (factor, entry) in zip(axes.ravel(), factors.items()):
         ax.axis("on")
+        bottom = bottom_of([entry]) if factor in OWN_RANGE_FACTORS else shared
         labels = [str(v) if v != "" else "as trained" for v in entry["values"]]
         rates = np.array(entry["image_all_correct"])
         if "ci95" in entry:  # older results have no intervals
