@@ -180,8 +180,13 @@ def run_robustness(checkpoint: Path | None, data_dir: Path, out_dir: Path,
     report: dict = {"model": str(seg.model_path), "data": str(data_dir), "task": cfg.task,
                     "images": len(items), "factors": {}}
     points = [(f, v) for f, values in sweeps.items() for v in values]
+    # Most sweeps start at the training condition, the same Stress(): render and score it once.
+    scored: dict[Stress, dict] = {}
     for factor, value in tqdm(points, desc="robustness", unit="point", disable=not progress):
-        result = score_stress(seg, items, cfg, Stress(**{factor: value}))
+        stress = Stress(**{factor: value})
+        if stress not in scored:
+            scored[stress] = score_stress(seg, items, cfg, stress)
+        result = scored[stress]
         entry = report["factors"].setdefault(factor, {key: [] for key in POINT_FIELDS})
         entry["values"].append(value)
         for key in POINT_FIELDS[1:]:
