@@ -201,9 +201,11 @@ def test_augmentation_holes_take_depth_and_labels_from_large_regions_and_nothing
     assert surrounded.sum() > 0.6 * inner.sum()
 
 
-def test_augmentation_holes_are_refused_outside_zero_to_one():
+def test_augmentation_holes_are_refused_outside_zero_to_one_or_without_augmentation():
     with pytest.raises(ConfigError, match="aug_holes"):
         TrainConfig(aug_holes=1.5).validate()
+    with pytest.raises(ConfigError, match="needs augment"):
+        TrainConfig(aug_holes=0.5, augment=False).validate()
     assert TrainConfig(aug_holes=0.5).validate().aug_holes == 0.5
 
 
