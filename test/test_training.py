@@ -635,6 +635,21 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
     assert (tmp_path / "rob" / "robustness.png").stat().st_size > 5000
 
 
+def test_robustness_command_sweeps_only_the_factors_asked_for(small_run, tmp_path, capsys):
+    from training.__main__ import main
+    from training.config import load_json
+
+    ckpt = make_checkpoint(tmp_path / "success_everywhere.pt", favour=SUCCESS)
+    common = ["robustness", "--out", str(small_run), "--checkpoint", str(ckpt), "--images", "1"]
+    assert main(common + ["--factors", "tilt", "--eval-out", str(tmp_path / "bad")]) == 2
+    assert "unknown factor(s) tilt" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+    out = tmp_path / "rob"
+    assert main(common + ["--factors", "camera_info", "--eval-out", str(out)]) == 0
+    factors = load_json(out / "robustness.json")["factors"]
+    assert list(factors) == ["camera_info"] and factors["camera_info"]["values"] == [True, False]
+
+
 def test_the_independent_set_is_cast_by_pybullet_and_scored_by_evaluate(small_run, tmp_path):
     """Its clean images agree with the analytic renderer on the same view (same geometry,
     another caster), its noise is its own, and evaluate scores it like any run."""

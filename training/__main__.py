@@ -308,6 +308,8 @@ def add_robustness_args(p: argparse.ArgumentParser) -> None:
                    help=f"validation episodes per stress point (default {ROBUSTNESS_IMAGES})")
     p.add_argument("--eval-out", type=Path, default=None,
                    help="where robustness.json goes (default: <data>/robustness)")
+    p.add_argument("--factors", nargs="+", default=None, metavar="FACTOR",
+                   help="sweep only these factors, e.g. lost_depth_share (default: all)")
 
 
 def add_eval_args(p: argparse.ArgumentParser) -> None:
@@ -334,12 +336,17 @@ def cmd_export_bag(args) -> None:
 
 
 def cmd_robustness(args) -> None:
-    from training.robustness import run_robustness
+    from training.robustness import SWEEPS, run_robustness
 
+    unknown = sorted(set(args.factors or ()) - set(SWEEPS))
+    if unknown:
+        raise ValueError(f"robustness: unknown factor(s) {', '.join(unknown)}; "
+                         f"expected some of {', '.join(SWEEPS)}")
+    sweeps = {f: SWEEPS[f] for f in SWEEPS if f in args.factors} if args.factors else None
     data = args.data or Path(args.out)
     out = args.eval_out or Path(data) / "robustness"  # beside the data it stressed
     report = run_robustness(args.checkpoint or _robustness_model(args, Path(data)), data, out,
-                            images=args.images)
+                            images=args.images, sweeps=sweeps)
     for factor, entry in report["factors"].items():
         pairs = ", ".join(f"{v}: {a:.3f}" for v, a in zip(entry["values"],
                                                           entry["image_all_correct"]))
