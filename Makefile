@@ -53,7 +53,7 @@ train: $(STAMP)
 # epochs on 2 cores in bf16; the schedule fits the 58 min budget: 10 epochs of tote 0.9.0 on a
 # slower machine, about 5 without native bf16), installed into the package as the model named
 # after the task (model_path:=tote). A task's own training options, if any, follow.
-SHIP_OPTIONS_tote := --relief-window-px 15 --relief-smoothing-px 3
+SHIP_OPTIONS_tote := --relief-window-px 15 --relief-smoothing-px 3 --aug-holes 0.5
 ship: $(STAMP)
 	$(PY) -m training run --scene $(SCENE) --out runs/$(basename $(notdir $(SCENE))) \
 		--episodes 20000 --ship $(SHIP_OPTIONS_$(basename $(notdir $(SCENE))))

@@ -46,8 +46,8 @@ def test_a_model_of_another_task_calls_every_real_tote_frame_outside_its_envelop
 def test_the_tote_model_labels_the_objects_put_into_a_real_tote_success():
     """Pixel level: the objects are where the frame with objects is nearer than the same
     camera's empty frame. The image-level verdicts are measured, not asserted
-    (docs/evaluation.md): today clutter outside the tote and the tote's near corner add
-    outcomes that are not there."""
+    (docs/evaluation.md): today specks of success in the empty containers and a blob on
+    something outside the tote add outcomes that are not there."""
     import cv2
 
     frames = load_frame_set("arc2017")
