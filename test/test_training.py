@@ -648,6 +648,10 @@ def test_robustness_command_sweeps_only_the_factors_asked_for(small_run, tmp_pat
     assert main(common + ["--factors", "camera_info", "--eval-out", str(out)]) == 0
     factors = load_json(out / "robustness.json")["factors"]
     assert list(factors) == ["camera_info"] and factors["camera_info"]["values"] == [True, False]
+    from training.robustness import run_robustness
+
+    with pytest.raises(ValueError, match="no factor"):
+        run_robustness(ckpt, small_run, tmp_path / "none", images=1, sweeps={}, progress=False)
 
 
 def test_the_independent_set_is_cast_by_pybullet_and_scored_by_evaluate(small_run, tmp_path):

@@ -862,8 +862,8 @@ class TrainConfig:
         _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
         _check_range(o, "aug_holes", self.aug_holes, 0.0, 1.0)
         if self.aug_holes and not self.augment:
-            raise ConfigError(f"{o}.aug_holes = {self.aug_holes} needs augment: the holes are "
-                              "drawn by the augmentation, which is off")
+            raise ConfigError(f"{o}.aug_holes = {self.aug_holes} needs augment (the holes are "
+                              "drawn by the augmentation): set augment or aug_holes 0")
         _check_range(o, "lovasz_weight", self.lovasz_weight, 0.0, 100.0)
         _check_int(o, "object_balance_pixels", self.object_balance_pixels, 0, 1_000_000)
         from task_outcome_ros.model import (

@@ -176,7 +176,10 @@ def run_robustness(checkpoint: Path | None, data_dir: Path, out_dir: Path,
     items = [(episodes[i], outcomes[i]) for i in val]
     seg = OutcomeSegmenter(checkpoint, backend="auto", num_threads=1)
     same_task(seg.table, table, seg.model_path, data_dir)  # renders then use the model's ids
-    sweeps = sweeps or SWEEPS
+    if sweeps is None:
+        sweeps = SWEEPS
+    elif not sweeps:
+        raise ValueError("robustness: no factor to sweep")
     report: dict = {"model": str(seg.model_path), "data": str(data_dir), "task": cfg.task,
                     "images": len(items), "factors": {}}
     points = [(f, v) for f, values in sweeps.items() for v in values]
