@@ -652,6 +652,10 @@ def test_robustness_command_sweeps_only_the_factors_asked_for(small_run, tmp_pat
 
     with pytest.raises(ValueError, match="no factor"):
         run_robustness(ckpt, small_run, tmp_path / "none", images=1, sweeps={}, progress=False)
+    with pytest.raises(ValueError, match="unknown factor"):
+        run_robustness(ckpt, small_run, tmp_path / "none", images=1,
+                       sweeps={"noise": (1.0, 2.0)}, progress=False)
+    assert not (tmp_path / "none").exists()
 
 
 def test_the_independent_set_is_cast_by_pybullet_and_scored_by_evaluate(small_run, tmp_path):
