@@ -201,11 +201,15 @@ def test_augmentation_holes_take_depth_and_labels_from_large_regions_and_nothing
     assert surrounded.sum() > 0.6 * inner.sum()
 
 
-def test_augmentation_holes_are_refused_outside_zero_to_one_or_without_augmentation():
+def test_augmentation_holes_and_noise_are_refused_out_of_range_or_without_augmentation():
     with pytest.raises(ConfigError, match="aug_holes"):
         TrainConfig(aug_holes=1.5).validate()
     with pytest.raises(ConfigError, match="needs augment"):
         TrainConfig(aug_holes=0.5, augment=False).validate()
+    with pytest.raises(ConfigError, match="aug_noise = 2.0 needs augment"):
+        TrainConfig(aug_noise=2.0, augment=False).validate()
+    TrainConfig(aug_noise=0.0, augment=False).validate()      # both off: nothing to refuse
+    TrainConfig(augment=False).validate()                     # the default level, left alone
     assert TrainConfig(aug_holes=0.5).validate().aug_holes == 0.5
 
 
