@@ -201,11 +201,15 @@ def test_augmentation_holes_take_depth_and_labels_from_large_regions_and_nothing
     assert surrounded.sum() > 0.6 * inner.sum()
 
 
-def test_augmentation_holes_are_refused_outside_zero_to_one_or_without_augmentation():
+def test_augmentation_holes_and_noise_are_refused_out_of_range_or_without_augmentation():
     with pytest.raises(ConfigError, match="aug_holes"):
         TrainConfig(aug_holes=1.5).validate()
     with pytest.raises(ConfigError, match="needs augment"):
         TrainConfig(aug_holes=0.5, augment=False).validate()
+    with pytest.raises(ConfigError, match="aug_noise = 2.0 needs augment"):
+        TrainConfig(aug_noise=2.0, augment=False).validate()
+    TrainConfig(aug_noise=0.0, augment=False).validate()      # both off: nothing to refuse
+    TrainConfig(augment=False).validate()                     # the default level, left alone
     assert TrainConfig(aug_holes=0.5).validate().aug_holes == 0.5
 
 
@@ -652,6 +656,10 @@ def test_robustness_command_sweeps_only_the_factors_asked_for(small_run, tmp_pat
 
     with pytest.raises(ValueError, match="no factor"):
         run_robustness(ckpt, small_run, tmp_path / "none", images=1, sweeps={}, progress=False)
+    with pytest.raises(ValueError, match="unknown factor"):
+        run_robustness(ckpt, small_run, tmp_path / "none", images=1,
+                       sweeps={"noise": (1.0, 2.0)}, progress=False)
+    assert not (tmp_path / "none").exists()
 
 
 def test_the_independent_set_is_cast_by_pybullet_and_scored_by_evaluate(small_run, tmp_path):

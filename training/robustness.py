@@ -161,11 +161,24 @@ def score_stress(seg: OutcomeSegmenter, items: list[tuple[dict, list[str]]],
             "outside_envelope": flagged, "mistakes": mistakes}
 
 
+def check_sweeps(sweeps: dict[str, tuple]) -> None:
+    """Refuse an empty sweep or a factor the suite does not know, before anything renders."""
+    if not sweeps:
+        raise ValueError("robustness: no factor to sweep")
+    unknown = sorted(set(sweeps) - set(SWEEPS))
+    if unknown:
+        raise ValueError(f"robustness: unknown factor(s) {', '.join(unknown)}; "
+                         f"expected some of {', '.join(SWEEPS)}")
+
+
 def run_robustness(checkpoint: Path | None, data_dir: Path, out_dir: Path,
                    images: int = ROBUSTNESS_IMAGES, sweeps: dict[str, tuple] | None = None,
                    progress: bool = True) -> dict:
     """Every sweep on the first ``images`` validation episodes of ``data_dir``."""
     data_dir, out_dir = Path(data_dir), Path(out_dir)
+    if sweeps is None:
+        sweeps = SWEEPS
+    check_sweeps(sweeps)
     manifest = load_manifest(data_dir)
     cfg = dataset_config_from_dict(manifest["config"])
     episodes = load_chunks(data_dir / "simulate", cfg.episodes, cfg.chunk_size)
@@ -176,10 +189,6 @@ def run_robustness(checkpoint: Path | None, data_dir: Path, out_dir: Path,
     items = [(episodes[i], outcomes[i]) for i in val]
     seg = OutcomeSegmenter(checkpoint, backend="auto", num_threads=1)
     same_task(seg.table, table, seg.model_path, data_dir)  # renders then use the model's ids
-    if sweeps is None:
-        sweeps = SWEEPS
-    elif not sweeps:
-        raise ValueError("robustness: no factor to sweep")
     report: dict = {"model": str(seg.model_path), "data": str(data_dir), "task": cfg.task,
                     "images": len(items), "factors": {}}
     points = [(f, v) for f, values in sweeps.items() for v in values]
