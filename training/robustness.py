@@ -246,7 +246,8 @@ def plot_robustness(path: Path, report: dict) -> None:
         ax.set_xticks(range(len(labels)), labels)
         ax.set_ylim(bottom, 1.005)
         ax.axhline(entry["image_all_correct"][0], color="grey", lw=0.8, ls="--")
-        ax.set_title(factor, fontsize=9)
+        ax.set_title(factor + (" (own y range)" if factor in OWN_RANGE_FACTORS else ""),
+                     fontsize=9)
         ax.set_ylabel("image all-correct")
     fig.suptitle(f"robustness of {Path(report['model']).name} on {report['images']} "
                  f"{report['task']} validation scenes (first value of each: as trained; "
