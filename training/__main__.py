@@ -336,10 +336,12 @@ def cmd_export_bag(args) -> None:
 
 
 def cmd_robustness(args) -> None:
-    from training.robustness import SWEEPS, run_robustness
+    from training.robustness import SWEEPS, check_sweeps, run_robustness
 
-    # An unknown name stays in the dict, so run_robustness refuses it before rendering.
-    sweeps = {f: SWEEPS.get(f, ()) for f in args.factors} if args.factors else None
+    sweeps = None
+    if args.factors:  # checked before the model or the data is looked for; the suite's order
+        check_sweeps(dict.fromkeys(args.factors, ()))
+        sweeps = {f: SWEEPS[f] for f in SWEEPS if f in args.factors}
     data = args.data or Path(args.out)
     out = args.eval_out or Path(data) / "robustness"  # beside the data it stressed
     report = run_robustness(args.checkpoint or _robustness_model(args, Path(data)), data, out,

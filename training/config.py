@@ -865,11 +865,12 @@ class TrainConfig:
             raise ConfigError(f"{o}.aug_holes = {self.aug_holes} needs augment (the holes are "
                               "drawn by the augmentation): set augment or aug_holes 0")
         # Only a level other than off and the default can be told from "left alone".
-        default_noise = TrainConfig.__dataclass_fields__["aug_noise"].default
+        default_noise = next(f.default for f in dataclasses.fields(TrainConfig)
+                             if f.name == "aug_noise")
         if not self.augment and self.aug_noise not in (0.0, default_noise):
             raise ConfigError(f"{o}.aug_noise = {self.aug_noise} needs augment (the noise is "
-                              f"re-drawn by the augmentation): set augment or aug_noise "
-                              f"{default_noise:g}")
+                              f"re-drawn by the augmentation): set augment or aug_noise 0 "
+                              f"or {default_noise:g}")
         _check_range(o, "lovasz_weight", self.lovasz_weight, 0.0, 100.0)
         _check_int(o, "object_balance_pixels", self.object_balance_pixels, 0, 1_000_000)
         from task_outcome_ros.model import (
