@@ -864,9 +864,9 @@ class TrainConfig:
         if self.aug_holes and not self.augment:
             raise ConfigError(f"{o}.aug_holes = {self.aug_holes} needs augment (the holes are "
                               "drawn by the augmentation): set augment or aug_holes 0")
-        # Only a level other than off and the default can be told from "left alone".
-        default_noise = next(f.default for f in dataclasses.fields(TrainConfig)
-                             if f.name == "aug_noise")
+        # Only a level other than off and the default can be told from "left alone"; the
+        # class attribute is the field's default.
+        default_noise = TrainConfig.aug_noise
         if not self.augment and self.aug_noise not in (0.0, default_noise):
             raise ConfigError(f"{o}.aug_noise = {self.aug_noise} needs augment (the noise is "
                               f"re-drawn by the augmentation): set augment or aug_noise 0 "
