@@ -83,6 +83,38 @@ def prepare_model(tmp: Path) -> tuple[Path, str]:
                   f"{shipped}); same compute cost, labels meaningless")
 
 
+# One level of 2 channels: the smallest network OutcomeFCN builds.
+TINY_NETWORK_ARGS = {"base_width": 2, "levels": 1, "decoder_convs": 1, "max_width": None}
+
+
+def tiny_network_model(source: Path, tmp: Path) -> tuple[Path, str]:
+    """``source``'s checkpoint with its network swapped for the smallest ``OutcomeFCN`` of the
+    same inputs and classes (random init, seed 0), exported to ONNX in ``tmp``.
+
+    Everything else the node does with ``source`` stays: the working size, the height channel
+    and its floor fit, the label table, the envelope. So a node running it costs what the
+    real one costs but for the network: a bound on how far a cheaper network could take the
+    node. Its labels are meaningless (a random network labels most pixels alike, so the
+    postprocessing it triggers is if anything cheaper than a trained network's)."""
+    import torch
+
+    from task_outcome_ros import checkpoint, model
+    from task_outcome_ros.onnx_export import export_onnx
+
+    real = checkpoint.load(source)
+    args = {**real.model_args, **TINY_NETWORK_ARGS}
+    torch.manual_seed(0)
+    net = model.build_model(args)
+    path = checkpoint.save(tmp / "tiny_network.pt", net, model_args=args,
+                           input_size=real.input_size, normalisation=real.normalisation,
+                           train_config=real.train_config, metrics={},
+                           label_table=real.label_table)
+    export_onnx(path)
+    return path, (f"{source.name} with its network swapped for a random-init {args} "
+                  f"({model.count_parameters(net)} parameters): the node's cost but the "
+                  "network's")
+
+
 def synth_frame(rng: np.random.Generator) -> np.ndarray:
     """A tilted floor plane at ~2 m with a few boxes and invalid (NaN) speckle, 640 x 480."""
     w, h = SIZE

@@ -25,6 +25,11 @@ fresh noise each frame: the node keeps its plane, ``reuse_floor_fit``).
 * throughput: 30 Hz for ``--seconds``: fraction answered, node dropped_frames (newest-frame
   policy), frames lost before the node, answer lag and backlog, node CPU and RSS over time.
 
+``--tiny-network`` runs the latency phase of the best-effort SHM scenarios with the shipped
+checkpoint's network swapped for the smallest one of the same inputs and classes
+(``inference.tiny_network_model``): what the node costs but for its network, against the same
+floor. It writes the ``node_tiny_network`` section instead of ``node``.
+
 ``--reference REV`` puts outcome_node as it was at git revision REV, with the model it shipped,
 in the floor's place (checked out into a temporary worktree, run with this environment's
 packages), so a change to the node is measured against its past in the same run, frame by
@@ -51,7 +56,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import record, sha256  # noqa: E402
-from inference import load_average, prepare_model  # noqa: E402
+from inference import load_average, prepare_model, tiny_network_model  # noqa: E402
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -238,6 +243,9 @@ def main() -> None:
                         help="measure against outcome_node at this git revision (its own "
                              "shipped model) instead of the do-nothing floor, in the "
                              "best-effort scenarios' latency phase only")
+    parser.add_argument("--tiny-network", action="store_true",
+                        help="measure the node with a network of almost no cost in the "
+                             "best-effort SHM scenarios' latency phase (node_tiny_network)")
     args = parser.parse_args()
     if args.quick:
         args.seconds, args.latency_frames, args.images = 10.0, 50, 10
@@ -249,6 +257,9 @@ def main() -> None:
     signal.signal(signal.SIGTERM, on_term)
     if args.reference:
         reference_main(args)
+        return
+    if args.tiny_network:
+        tiny_network_main(args)
         return
     load_start = load_average()
     scenarios = []
@@ -333,6 +344,40 @@ def reference_main(args: argparse.Namespace) -> None:
                      "and status only",
         "wall_s": round(time.monotonic() - t0, 1),
         "load_average_1_5_15": {"start": load_start, "end": load_average()},
+        "scenarios": scenarios}, command)
+
+
+def tiny_network_main(args: argparse.Namespace) -> None:
+    """The latency phase of the best-effort SHM scenarios, the node running a network of
+    almost no cost: how close to the floor the node's other work alone lets it come."""
+    names = [n for n in args.only if SCENARIOS[n][0] == "sensor_data" and SCENARIOS[n][1]]
+    if not names:
+        sys.exit("bench/node.py: --tiny-network measures the best-effort SHM scenarios' "
+                 "latency; --only chose none of them")
+    command = "python bench/node.py " + " ".join(sys.argv[1:])
+    load_start, t0, scenarios = load_average(), time.monotonic(), {}
+    with tempfile.TemporaryDirectory(prefix="bench_node_") as tmp:
+        shipped, _ = prepare_model(Path(tmp))
+        model, model_desc = tiny_network_model(shipped, Path(tmp))
+        for name in names:
+            qos, shm, static = SCENARIOS[name]
+            print(f"[bench/node] {name} with the tiny network ...", flush=True)
+            s = run_scenario(model, qos, shm, args.latency_frames, 0.0, args.images,
+                             Path(tmp), 240 + args.latency_frames, static)
+            scenarios[name] = s
+            print(f"[bench/node]   {json.dumps(summary(s))}", flush=True)
+    failed = [name for name, s in scenarios.items() if not s.get("ok")]
+    if failed:
+        for name in failed:
+            print(f"[bench/node] {name} failed:\n{scenarios[name].get('node_log_tail') or ''}",
+                  file=sys.stderr)
+        sys.exit(f"bench/node.py: {', '.join(failed)} failed; results.json left unchanged")
+    record("node_tiny_network", {
+        "model": model_desc, "node_command": " ".join(node_command()),
+        "floor_node": " ".join(floor_command("<qos>")),
+        "quick": args.quick, "wall_s": round(time.monotonic() - t0, 1),
+        "load_average_1_5_15": {"start": load_start, "end": load_average()},
+        "summary": {name: summary(s) for name, s in scenarios.items()},
         "scenarios": scenarios}, command)
 
 

@@ -122,3 +122,24 @@ def test_a_reference_run_reports_ratios_to_the_past_node_not_to_a_floor():
     # A reference that never answered gives no ratio, and the run is not recorded as ok.
     scenario["latency"]["floor"]["end_to_end_ms"] = None
     assert not node.against_reference(scenario)["ok"]
+
+
+@pytest.mark.unit
+def test_the_tiny_network_keeps_everything_but_the_network(tmp_path):
+    from task_outcome_ros import checkpoint
+    from task_outcome_ros.inference import OutcomeSegmenter, default_model_path
+
+    inference = _bench_module("inference")
+    path, desc = inference.tiny_network_model(default_model_path(), tmp_path)
+    real, tiny = checkpoint.load(default_model_path()), checkpoint.load(path)
+    for field in ("input_size", "normalisation", "train_config"):
+        assert getattr(tiny, field) == getattr(real, field), field
+    assert tiny.label_table.to_dict() == real.label_table.to_dict()
+    assert tiny.model_args["in_channels"] == real.model_args["in_channels"]
+    small = sum(p.numel() for p in tiny.model.parameters())
+    assert small * 1000 < sum(p.numel() for p in real.model.parameters())
+    assert f"({small} parameters)" in desc
+    seg = OutcomeSegmenter(path, backend="auto", num_threads=1)
+    assert seg.backend == "onnx"          # the node would run the tiny ONNX export
+    depth = np.full((480, 640), 2.0, np.float32)
+    assert seg.segment(depth).labels.shape == depth.shape
