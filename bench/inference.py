@@ -89,13 +89,15 @@ TINY_NETWORK_ARGS = {"base_width": 2, "levels": 1, "decoder_convs": 1, "max_widt
 
 def tiny_network_model(source: Path, tmp: Path) -> tuple[Path, str]:
     """``source``'s checkpoint with its network swapped for the smallest ``OutcomeFCN`` of the
-    same inputs and classes (random init, seed 0), exported to ONNX in ``tmp``.
+    same inputs and classes (seed 0), exported to ONNX in ``tmp``.
 
     Everything else the node does with ``source`` stays: the working size, the height channel
     and its floor fit, the label table, the envelope. So a node running it costs what the
     real one costs but for the network: a bound on how far a cheaper network could take the
-    node. Its labels are meaningless (a random network labels most pixels alike, so the
-    postprocessing it triggers is if anything cheaper than a trained network's)."""
+    node. Its head answers background everywhere (weights 0, background's bias 1): a random
+    head scatters every class over the frame and makes postprocessing (components, fragments)
+    cost far more than a trained network's; an empty answer makes it cost least, so the bound
+    is a lower one."""
     import torch
 
     from task_outcome_ros import checkpoint, model
@@ -105,14 +107,19 @@ def tiny_network_model(source: Path, tmp: Path) -> tuple[Path, str]:
     args = {**real.model_args, **TINY_NETWORK_ARGS}
     torch.manual_seed(0)
     net = model.build_model(args)
+    with torch.no_grad():
+        net.head.weight.zero_()
+        net.head.bias.zero_()
+        net.head.bias[0] = 1.0           # id 0: background, in every label table
     path = checkpoint.save(tmp / "tiny_network.pt", net, model_args=args,
                            input_size=real.input_size, normalisation=real.normalisation,
                            train_config=real.train_config, metrics={},
                            label_table=real.label_table)
     export_onnx(path)
-    return path, (f"{source.name} with its network swapped for a random-init {args} "
-                  f"({model.count_parameters(net)} parameters): the node's cost but the "
-                  "network's")
+    return path, (f"{source.name} with its network swapped for {args} "
+                  f"({model.count_parameters(net)} parameters, random init, the head "
+                  "answering background everywhere): the node's cost but the network's, "
+                  "with nothing to report")
 
 
 def synth_frame(rng: np.random.Generator) -> np.ndarray:
