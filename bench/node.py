@@ -26,7 +26,7 @@ fresh noise each frame: the node keeps its plane, ``reuse_floor_fit``).
   policy), frames lost before the node, answer lag and backlog, node CPU and RSS over time.
 
 ``--tiny-network`` runs the latency phase of the best-effort SHM scenarios with the shipped
-checkpoint's network swapped for the smallest one of the same inputs and classes
+checkpoint's network swapped for a one-level one of the same inputs and classes
 (``inference.tiny_network_model``): what the node costs but for its network, against the same
 floor. It writes the ``node_tiny_network`` section instead of ``node``.
 
@@ -239,13 +239,14 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="10 s throughput, 50 latency frames")
     parser.add_argument("--only", choices=SCENARIOS, nargs="+", default=list(SCENARIOS),
                         help="run these scenarios only (results.json is left unchanged)")
-    parser.add_argument("--reference", metavar="REV",
-                        help="measure against outcome_node at this git revision (its own "
-                             "shipped model) instead of the do-nothing floor, in the "
-                             "best-effort scenarios' latency phase only")
-    parser.add_argument("--tiny-network", action="store_true",
-                        help="measure the node with a network of almost no cost in the "
-                             "best-effort SHM scenarios' latency phase (node_tiny_network)")
+    instead = parser.add_mutually_exclusive_group()
+    instead.add_argument("--reference", metavar="REV",
+                         help="measure against outcome_node at this git revision (its own "
+                              "shipped model) instead of the do-nothing floor, in the "
+                              "best-effort scenarios' latency phase only")
+    instead.add_argument("--tiny-network", action="store_true",
+                         help="measure the node with a network of almost no cost in the "
+                              "best-effort SHM scenarios' latency phase (node_tiny_network)")
     args = parser.parse_args()
     if args.quick:
         args.seconds, args.latency_frames, args.images = 10.0, 50, 10
@@ -350,14 +351,15 @@ def reference_main(args: argparse.Namespace) -> None:
 def tiny_network_main(args: argparse.Namespace) -> None:
     """The latency phase of the best-effort SHM scenarios, the node running a network of
     almost no cost: how close to the floor the node's other work alone lets it come."""
-    names = [n for n in args.only if SCENARIOS[n][0] == "sensor_data" and SCENARIOS[n][1]]
+    eligible = [n for n in SCENARIOS if SCENARIOS[n][0] == "sensor_data" and SCENARIOS[n][1]]
+    names = [n for n in args.only if n in eligible]
     if not names:
-        sys.exit("bench/node.py: --tiny-network measures the best-effort SHM scenarios' "
-                 "latency; --only chose none of them")
+        sys.exit(f"bench/node.py: --tiny-network measures the best-effort SHM scenarios' "
+                 f"latency; --only chose none of {eligible}")
     command = "python bench/node.py " + " ".join(sys.argv[1:])
     load_start, t0, scenarios = load_average(), time.monotonic(), {}
     with tempfile.TemporaryDirectory(prefix="bench_node_") as tmp:
-        shipped, _ = prepare_model(Path(tmp))
+        shipped, shipped_desc = prepare_model(Path(tmp))
         model, model_desc = tiny_network_model(shipped, Path(tmp))
         for name in names:
             qos, shm, static = SCENARIOS[name]
@@ -369,11 +371,14 @@ def tiny_network_main(args: argparse.Namespace) -> None:
     failed = [name for name, s in scenarios.items() if not s.get("ok")]
     if failed:
         for name in failed:
-            print(f"[bench/node] {name} failed:\n{scenarios[name].get('node_log_tail') or ''}",
-                  file=sys.stderr)
+            print(f"[bench/node] {name} failed: {scenarios[name].get('error')}\n"
+                  f"{scenarios[name].get('node_log_tail') or ''}", file=sys.stderr)
         sys.exit(f"bench/node.py: {', '.join(failed)} failed; results.json left unchanged")
+    if set(names) != set(eligible):  # a diagnosis run: printed, not recorded
+        return
     record("node_tiny_network", {
-        "model": model_desc, "node_command": " ".join(node_command()),
+        "model": model_desc, "network_taken_from": shipped_desc,
+        "node_command": " ".join(node_command()),
         "floor_node": " ".join(floor_command("<qos>")),
         "quick": args.quick, "wall_s": round(time.monotonic() - t0, 1),
         "load_average_1_5_15": {"start": load_start, "end": load_average()},
