@@ -184,7 +184,8 @@ def run_scenario(model: Path, qos: str, shm: bool, latency_frames: int, seconds:
                   node_exit_code=node.returncode, load_average_before=load0,
                   load_average_after=load_average(),
                   host_udp_datagrams_during={k: udp1[k] - udp0[k] for k in udp0})
-    result["node_ready_line"] = ready_line(log_text)
+    line = ready_line(log_text)  # a model in the temp folder: its file name says enough
+    result["node_ready_line"] = line and line.replace(f"{tmp}/", "")
     if reference is not None:  # worktree paths say which revision, not where it was
         line = ready_line(floor_log.read_text())
         result["reference_ready_line"] = line and line.replace(f"{reference}/", "")
@@ -226,6 +227,19 @@ def summary(s: dict) -> dict:
                    node_cpu_ms_per_answered_frame=tp.get("node_cpu_ms_per_answered_frame"),
                    support_plane_kept_share=tp.get("support_plane_kept_share"))
     return out
+
+
+def exit_if_any_failed(scenarios: dict[str, dict]) -> None:
+    """Print what went wrong in every scenario that is not ok (its error, if any, and the
+    node's log tail) and exit without touching results.json."""
+    failed = [name for name, s in scenarios.items() if not s.get("ok")]
+    if not failed:
+        return
+    for name in failed:
+        error = scenarios[name].get("error")
+        print(f"[bench/node] {name} failed{f': {error}' if error else ''}\n"
+              f"{scenarios[name].get('node_log_tail') or ''}", file=sys.stderr)
+    sys.exit(f"bench/node.py: {', '.join(failed)} failed; results.json left unchanged")
 
 
 def main() -> None:
@@ -278,12 +292,7 @@ def main() -> None:
             scenarios.append(s)
     if set(args.only) != set(SCENARIOS):  # a diagnosis run: printed, not recorded
         return
-    if not all(s.get("ok") for s in scenarios):
-        for s in scenarios:
-            if not s.get("ok"):
-                print(f"[bench/node] {s['scenario']} failed: {s.get('error')}\n"
-                      f"{s.get('node_log_tail', '')}", file=sys.stderr)
-        sys.exit("bench/node.py: a scenario failed; results.json left unchanged")
+    exit_if_any_failed({s["scenario"]: s for s in scenarios})
     record("node", {
         "model": model_desc, "node_command": " ".join(node_command()),
         "node_params": "defaults (backend auto, publish_overlay true, publish_markers true, "
@@ -329,12 +338,7 @@ def reference_main(args: argparse.Namespace) -> None:
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=REPO,
                            capture_output=True)
-    failed = [name for name, s in scenarios.items() if not s.get("ok")]
-    if failed:
-        for name in failed:
-            print(f"[bench/node] {name} failed:\n{scenarios[name].get('node_log_tail') or ''}",
-                  file=sys.stderr)
-        sys.exit(f"bench/node.py: {', '.join(failed)} failed; results.json left unchanged")
+    exit_if_any_failed(scenarios)
     if set(names) != set(every):  # a diagnosis run: printed, not recorded
         return
     record("node_reference", {
@@ -366,16 +370,9 @@ def tiny_network_main(args: argparse.Namespace) -> None:
             print(f"[bench/node] {name} with the tiny network ...", flush=True)
             s = run_scenario(model, qos, shm, args.latency_frames, 0.0, args.images,
                              Path(tmp), 240 + args.latency_frames, static)
-            if s.get("node_ready_line"):  # the temp folder says nothing; the file name does
-                s["node_ready_line"] = s["node_ready_line"].replace(f"{tmp}/", "")
             scenarios[name] = s
             print(f"[bench/node]   {json.dumps(summary(s))}", flush=True)
-    failed = [name for name, s in scenarios.items() if not s.get("ok")]
-    if failed:
-        for name in failed:
-            print(f"[bench/node] {name} failed: {scenarios[name].get('error')}\n"
-                  f"{scenarios[name].get('node_log_tail') or ''}", file=sys.stderr)
-        sys.exit(f"bench/node.py: {', '.join(failed)} failed; results.json left unchanged")
+    exit_if_any_failed(scenarios)
     if set(names) != set(eligible):  # a diagnosis run: printed, not recorded
         return
     record("node_tiny_network", {
