@@ -163,6 +163,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help="share of training images that lose their depth over large smooth "
                         "regions (up to 35 %% of the image), as real frames lose whole "
                         "surfaces (default 0 = off)")
+    p.add_argument("--aug-roll", type=float, default=None, dest="aug_roll_deg",
+                   help="camera roll added per training image, up to this many degrees either "
+                        "way on top of the spec's, by turning the image about its principal "
+                        "point (default 0 = off)")
     p.add_argument("--lovasz-weight", type=float, default=None,
                    help="weight of the per-image outcome IoU (Lovász) loss added to "
                         "cross-entropy (default 0.5; 0 = off)")
@@ -213,6 +217,7 @@ def resolve_train_config(args: argparse.Namespace):
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
               "channels_last": "channels_last", "near_boundary_weight": "near_boundary_weight",
               "aug_noise": "aug_noise", "aug_holes": "aug_holes",
+              "aug_roll_deg": "aug_roll_deg",
               "lovasz_weight": "lovasz_weight",
               "object_balance_pixels": "object_balance_pixels",
               "relief_window_px": "relief_window_px",

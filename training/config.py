@@ -786,6 +786,10 @@ class TrainConfig:
     # the image (holes.no_return_holes: real frames lose whole surfaces, our sensor models
     # mostly speckles); labels there are ignored. 0 = off.
     aug_holes: float = 0.0
+    # Camera roll added per training image, U(-aug_roll_deg, aug_roll_deg) on top of the
+    # spec's own (roll.roll_images: the image turned about its principal point, exact for
+    # depth along the optical axis). 0 = off.
+    aug_roll_deg: float = 0.0
     # Weight of the per-image outcome IoU (Lovász-softmax) loss added to cross-entropy
     # (losses.py); 0 = cross-entropy alone. 0.5 (model 0.1.6): fewer split objects; image
     # all-correct 0.982 -> 0.986 (validation), 0.980 -> 0.982 (seed-1), 0.980 -> 0.987 on the
@@ -864,6 +868,10 @@ class TrainConfig:
         if self.aug_holes and not self.augment:
             raise ConfigError(f"{o}.aug_holes = {self.aug_holes} needs augment (the holes are "
                               "drawn by the augmentation): set augment or aug_holes 0")
+        _check_range(o, "aug_roll_deg", self.aug_roll_deg, 0.0, 45.0)
+        if self.aug_roll_deg and not self.augment:
+            raise ConfigError(f"{o}.aug_roll_deg = {self.aug_roll_deg} needs augment (the roll "
+                              "is drawn by the augmentation): set augment or aug_roll_deg 0")
         # Only a level other than off and the default can be told from "left alone"; the
         # class attribute is the field's default.
         default_noise = TrainConfig.aug_noise

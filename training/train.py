@@ -69,6 +69,7 @@ from training.losses import (
     object_balance_weights,
     outcome_lovasz_loss,
 )
+from training.roll import draw_roll, roll_images
 
 WARMUP_FRACTION = 0.03
 # The sensor's axial noise per 640 x 480 pixel, as sd / z^2 (robust sd of noisy - clean depth
@@ -135,7 +136,7 @@ class Batch(NamedTuple):
 def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
             gen: torch.Generator, noise_level: float = 1.0,
             intrinsics: torch.Tensor | None = None, nearest: torch.Tensor | None = None,
-            holes: float = 0.0) -> Batch:
+            holes: float = 0.0, roll_deg: float = 0.0) -> Batch:
     """Batch augmentation that keeps labels honest. depth/valid float (N,h,w), labels long.
 
     ``noise_level`` (``TrainConfig.aug_noise``): each image gets re-drawn axial noise of
@@ -153,8 +154,16 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
 
     ``holes`` (``TrainConfig.aug_holes``): that share of the images loses its depth over
     ``holes.no_return_holes``, labels ignored there; drawn last, so 0 leaves the stream as
-    it was."""
+    it was.
+
+    ``roll_deg`` (``TrainConfig.aug_roll_deg``): each image first turned as by a camera
+    rolled U(-roll_deg, roll_deg) about its optical axis (``roll.roll_images``: about the
+    principal point, corners coming into view without depth or label); drawn only when
+    above 0, so 0 leaves the stream as it was."""
     n = depth.shape[0]
+    if roll_deg > 0:  # first, so that its interpolation does not smooth the noise drawn below
+        depth, valid, labels, nearest = roll_images(draw_roll(n, roll_deg, gen), intrinsics,
+                                                    depth, valid, labels, nearest)
     flip = torch.rand(n, generator=gen) < 0.5           # a mirrored scene is a valid scene
     depth = torch.where(flip[:, None, None], depth.flip(-1), depth)
     if nearest is not None:
@@ -288,7 +297,8 @@ def autocast_factory(precision: str, device_type: str):
 
 
 def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
-                 noise_level: float = 1.0, holes: float = 0.0) -> Batch:
+                 noise_level: float = 1.0, holes: float = 0.0, roll_deg: float = 0.0
+                 ) -> Batch:
     """The cached images ``idx`` as a ``Batch``, augmented unless ``gen`` is None (the
     training loop's data step; bench/train_step.py times this very function). intrinsics and
     nearest are None unless ``arrays`` holds them (``TrainConfig.camera_intrinsics``,
@@ -300,7 +310,8 @@ def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
                   tensor("labels", np.int64), tensor("intrinsics", np.float32),
                   tensor("nearest", np.float32))
     if gen is not None:
-        batch = augment(*batch[:3], gen, noise_level, batch.intrinsics, batch.nearest, holes)
+        batch = augment(*batch[:3], gen, noise_level, batch.intrinsics, batch.nearest, holes,
+                        roll_deg)
     return batch
 
 
@@ -420,7 +431,8 @@ RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
 ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
                       "relief_window_px": 0, "relief_smoothing_px": 0, "relief_base_px": 0,
-                      "relief_noise_sds": 0.0, "nearest_height": False, "aug_holes": 0.0}
+                      "relief_noise_sds": 0.0, "nearest_height": False, "aug_holes": 0.0,
+                      "aug_roll_deg": 0.0}
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
@@ -562,7 +574,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         for b in bar:
             idx = np.sort(order[b * cfg.batch_size:(b + 1) * cfg.batch_size])
             depth, valid, labels, intrinsics, nearest = gather_batch(
-                train_arrays, idx, gen if cfg.augment else None, aug_noise, cfg.aug_holes)
+                train_arrays, idx, gen if cfg.augment else None, aug_noise, cfg.aug_holes,
+                cfg.aug_roll_deg)
             x = network_input(depth, valid, norm, intrinsics, nearest=nearest).to(
                 device, memory_format=memory_format)
             labels = labels.to(device)

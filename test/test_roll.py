@@ -1,0 +1,105 @@
+"""Camera roll as a training augmentation (training/roll.py): a turned image is what a rolled
+camera renders, labels and depths move together, and the option is refused where it cannot
+act."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from task_outcome_ros.labels import BACKGROUND, IGNORE
+from training.config import ConfigError, TrainConfig
+from training.render import Camera, SceneBox, look_at, render
+from training.roll import roll_images
+
+
+def rendered(roll_deg: float) -> tuple[np.ndarray, np.ndarray, Camera]:
+    """Clean depth and labels of a box on a floor, from a camera 2 m away looking down at 45°
+    with an off-centre principal point and fx != fy, rolled by ``roll_deg``."""
+    target = np.zeros(3)
+    position = np.array([-1.4, 0.3, 1.4])
+    camera = Camera(160, 120, 140.0, 132.0, 83.0, 57.0, position,
+                    look_at(position, target, 0.0, roll_deg))
+    box = SceneBox(np.array([0.2, 0.12, 0.1]), np.array([0.05, -0.1, 0.1]), np.eye(3), 2)
+    depth, labels, _ = render([box], 0.0, camera)
+    return depth, labels, camera
+
+
+def as_batch(depth: np.ndarray, labels: np.ndarray):
+    valid = np.isfinite(depth)
+    return (torch.from_numpy(np.where(valid, depth, 0.0)[None].astype(np.float32)),
+            torch.from_numpy(valid[None].astype(np.float32)),
+            torch.from_numpy(labels[None].astype(np.int64)))
+
+
+def test_a_turned_image_is_what_the_rolled_camera_renders():
+    plain_depth, plain_labels, camera = rendered(0.0)
+    want_depth, want_labels, _ = rendered(15.0)
+    intrinsics = torch.from_numpy(camera.normalised()[None])
+    scores = {}
+    for sign in (1, -1):
+        depth, valid, labels, _ = roll_images(torch.tensor([sign * math.radians(15.0)]),
+                                              intrinsics, *as_batch(plain_depth, plain_labels))
+        seen = (labels[0] != IGNORE).numpy()
+        got_box, want_box = labels[0].numpy()[seen] == 2, want_labels[seen] == 2
+        scores[sign] = (got_box & want_box).sum() / (got_box | want_box).sum()  # box IoU
+        if sign == 1:
+            both = seen & (valid[0].numpy() > 0) & np.isfinite(want_depth)
+            error = np.abs(depth[0].numpy()[both] - want_depth[both])
+            assert both.mean() > 0.8                 # corners out of view, the rest measured
+            assert np.median(error) < 0.0005         # same depths, only moved
+            assert want_box.sum() > 300
+    # Render's sense of roll, at nearest-pixel precision; the opposite turn is clearly off.
+    assert scores[1] > 0.95 and scores[-1] < 0.8
+
+
+def test_the_corners_that_come_into_view_have_no_depth_and_no_label():
+    depth = torch.full((2, 60, 80), 2.0)
+    labels = torch.full((2, 60, 80), BACKGROUND)
+    labels[:, 20:40, 30:50] = 3
+    angles = torch.tensor([0.0, math.radians(20.0)])
+    out_depth, out_valid, out_labels, nearest = roll_images(
+        angles, None, depth, torch.ones_like(depth), labels, depth.clone())
+    assert torch.equal(out_depth[0], depth[0]) and torch.equal(out_labels[0], labels[0])
+    gone = out_labels[1] == IGNORE
+    assert gone[0, 0] and gone[-1, -1] and not gone[30, 40]     # corners, not the centre
+    assert (out_valid[1][gone] == 0).all() and (out_depth[1][gone] == 0).all()
+    assert torch.allclose(out_depth[1][~gone], torch.tensor(2.0))  # no blend with the void
+    assert torch.equal(nearest, out_depth)                      # moved like the depths
+    kept = out_labels[1][~gone]
+    assert set(kept.unique().tolist()) == {BACKGROUND, 3}        # labels stay labels
+    assert abs(int((kept == 3).sum()) - 400) < 40                # the object keeps its area
+
+
+def test_augmentation_roll_turns_the_images_first_and_zero_leaves_the_stream_as_it_was():
+    from training.train import augment
+
+    depth = torch.rand(8, 60, 80) + 1.0
+    labels = torch.randint(0, 4, (8, 60, 80))
+    args = (torch.ones_like(depth), labels)
+    plain = augment(depth.clone(), *args, torch.Generator().manual_seed(3), holes=0.5)
+    off = augment(depth.clone(), *args, torch.Generator().manual_seed(3), holes=0.5,
+                  roll_deg=0.0)
+    for a, b in zip(plain[:3], off[:3]):
+        assert torch.equal(a, b)
+    # With a roll, the angles are drawn first and the other draws act on the turned images.
+    gen = torch.Generator().manual_seed(3)
+    angles = (torch.rand(8, generator=gen) * 2 - 1) * math.radians(15.0)
+    assert (angles.abs() <= math.radians(15.0)).all() and angles.abs().max() > 0.05
+    turned = roll_images(angles, None, depth.clone(), *args)
+    want = augment(*turned[:3], gen, holes=0.5)
+    rolled = augment(depth.clone(), *args, torch.Generator().manual_seed(3), holes=0.5,
+                     roll_deg=15.0)
+    for a, b in zip(rolled[:3], want[:3]):
+        assert torch.equal(a, b)
+
+
+def test_roll_augmentation_is_refused_out_of_range_or_without_augmentation():
+    with pytest.raises(ConfigError, match="aug_roll_deg"):
+        TrainConfig(aug_roll_deg=60.0).validate()
+    with pytest.raises(ConfigError, match="aug_roll_deg = 10.0 needs augment"):
+        TrainConfig(aug_roll_deg=10.0, augment=False).validate()
+    assert TrainConfig(aug_roll_deg=12.0).validate().aug_roll_deg == 12.0
