@@ -13,7 +13,7 @@ import torch
 from task_outcome_ros.labels import BACKGROUND, IGNORE
 from training.config import ConfigError, TrainConfig
 from training.render import Camera, SceneBox, look_at, render
-from training.roll import roll_images
+from training.roll import pixel_noise, roll_images
 
 
 def rendered(roll_deg: float) -> tuple[np.ndarray, np.ndarray, Camera]:
@@ -74,6 +74,38 @@ def test_the_corners_that_come_into_view_have_no_depth_and_no_label():
     assert abs(int((kept == 3).sum()) - 400) < 40                # the object keeps its area
 
 
+def test_pixel_noise_reads_the_noise_of_a_sloped_floor_and_none_on_a_clean_one():
+    gen = torch.Generator().manual_seed(11)
+    z = torch.linspace(1.5, 3.0, 120)[None, :, None].expand(4, 120, 160).contiguous()
+    sd = 0.0006                                                             # per z^2
+    noisy = z + sd * z**2 * torch.randn(z.shape, generator=gen)
+    valid = torch.ones_like(z)
+    assert torch.allclose(pixel_noise(noisy, valid), torch.tensor(sd), rtol=0.05)
+    assert (pixel_noise(z, valid) < 0.05 * sd).all()
+    assert (pixel_noise(noisy, torch.zeros_like(z)) == 0).all()             # nothing to read
+
+
+def test_the_turn_puts_back_the_noise_its_interpolation_averages_away():
+    gen = torch.Generator().manual_seed(11)
+    z, sd = 2.0, 0.0006
+    noisy = z + sd * z**2 * torch.randn((16, 120, 160), generator=gen)     # a flat floor
+    valid, labels = torch.ones_like(noisy), torch.zeros(noisy.shape, dtype=torch.long)
+    angles = (torch.rand(16, generator=gen) * 2 - 1) * math.radians(15.0)
+    blended = roll_images(angles, None, noisy, valid, labels)[0]
+    restored = roll_images(angles, None, noisy, valid, labels, gen=gen)[0]
+    centre = (slice(None), slice(30, 90), slice(40, 120))                   # off the corners
+
+    def relative_sd(depth: torch.Tensor) -> float:
+        return float((depth[centre] - z).std() / (sd * z**2))
+
+    # The blend alone leaves two thirds of each pixel's noise; the turn with ``gen`` all of
+    # it, without moving the floor.
+    assert relative_sd(noisy) == pytest.approx(1.0, abs=0.02)
+    assert relative_sd(blended) < 0.75
+    assert relative_sd(restored) == pytest.approx(1.0, abs=0.03)
+    assert abs(float(restored[centre].mean()) - z) < 1e-4
+
+
 def test_augmentation_roll_turns_the_images_first_and_zero_leaves_the_stream_as_it_was():
     from training.train import augment
 
@@ -89,7 +121,7 @@ def test_augmentation_roll_turns_the_images_first_and_zero_leaves_the_stream_as_
     gen = torch.Generator().manual_seed(3)
     angles = (torch.rand(8, generator=gen) * 2 - 1) * math.radians(15.0)
     assert (angles.abs() <= math.radians(15.0)).all() and angles.abs().max() > 0.05
-    turned = roll_images(angles, None, depth.clone(), *args)
+    turned = roll_images(angles, None, depth.clone(), *args, gen=gen)
     want = augment(*turned[:3], gen, holes=0.5)
     rolled = augment(depth.clone(), *args, torch.Generator().manual_seed(3), holes=0.5,
                      roll_deg=15.0)

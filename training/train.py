@@ -163,7 +163,7 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     n = depth.shape[0]
     if roll_deg > 0:  # first, so that its interpolation does not smooth the noise drawn below
         depth, valid, labels, nearest = roll_images(draw_roll(n, roll_deg, gen), intrinsics,
-                                                    depth, valid, labels, nearest)
+                                                    depth, valid, labels, nearest, gen)
     flip = torch.rand(n, generator=gen) < 0.5           # a mirrored scene is a valid scene
     depth = torch.where(flip[:, None, None], depth.flip(-1), depth)
     if nearest is not None:
