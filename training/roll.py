@@ -84,8 +84,9 @@ def roll_images(angles_rad: torch.Tensor, intrinsics: torch.Tensor | None,
 
     Depths are interpolated bilinearly among the valid neighbours: taking the nearest pixel
     would turn a sloped floor into steps of half a working pixel's slope (about 5 mm at 2 m,
-    three times the sensor's noise there); across an object's edge the blend adds a mixed
-    pixel to the one the area resize to the working size already made, which may cost the
+    three times the sensor's noise there); across an object's edge the blend adds mixed
+    pixels to those the area resize to the working size already made (on shelf images, 54
+    -> 69 % of the pixels inside a > 5 cm step lie between its sides), which may cost the
     shelf's millimetre overhangs (docs/experiments.md). With ``gen`` the noise the blend averaged
     away is drawn again (module docstring); without it the depths stay blended. Labels take
     the nearest pixel, so every label stays a label; pixels that come from outside the frame
