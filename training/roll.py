@@ -42,21 +42,19 @@ def principal_points(intrinsics: torch.Tensor | None, n: int, h: int, w: int
     return centre, torch.stack([intrinsics[:, 0] * w, intrinsics[:, 1] * h], 1)
 
 
-def roll_grid(angles_rad: torch.Tensor, centre: torch.Tensor, focal: torch.Tensor,
-              h: int, w: int) -> torch.Tensor:
-    """(N, h, w, 2) ``grid_sample`` grid (align_corners=True): where each pixel of the image
-    seen by a camera rolled by ``angles_rad`` (``render.look_at``'s sense) lies in the
-    unrolled image. In focal units a pixel at (x', y') of the rolled camera is the point
-    at (cos a x' - sin a y', sin a x' + cos a y') of the unrolled one."""
+def roll_sources(angles_rad: torch.Tensor, centre: torch.Tensor, focal: torch.Tensor,
+                 h: int, w: int) -> torch.Tensor:
+    """(N, h, w, 2) pixel coordinates (u, v): where each pixel of the image seen by a camera
+    rolled by ``angles_rad`` (``render.look_at``'s sense) lies in the unrolled image. In
+    focal units a pixel at (x', y') of the rolled camera is the point at
+    (cos a x' - sin a y', sin a x' + cos a y') of the unrolled one."""
     v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32),
                           torch.arange(w, dtype=torch.float32), indexing="ij")
     fx, fy = focal[:, 0, None, None], focal[:, 1, None, None]
     cu, cv = centre[:, 0, None, None], centre[:, 1, None, None]
     x, y = (u[None] - cu) / fx, (v[None] - cv) / fy
     cos, sin = angles_rad.cos()[:, None, None], angles_rad.sin()[:, None, None]
-    src_u = (cos * x - sin * y) * fx + cu
-    src_v = (sin * x + cos * y) * fy + cv
-    return torch.stack([2 * src_u / (w - 1) - 1, 2 * src_v / (h - 1) - 1], -1)
+    return torch.stack([(cos * x - sin * y) * fx + cu, (sin * x + cos * y) * fy + cv], -1)
 
 
 def pixel_noise(depth: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -93,7 +91,8 @@ def roll_images(angles_rad: torch.Tensor, intrinsics: torch.Tensor | None,
     get no depth and the ignored label."""
     n, h, w = depth.shape
     centre, focal = principal_points(intrinsics, n, h, w)
-    grid = roll_grid(angles_rad.float(), centre.float(), focal.float(), h, w)
+    source = roll_sources(angles_rad.float(), centre.float(), focal.float(), h, w)
+    grid = 2 * source / torch.tensor([w - 1, h - 1], dtype=source.dtype) - 1  # align_corners
 
     def turn(t: torch.Tensor, mode: str) -> torch.Tensor:
         return F.grid_sample(t[:, None].float(), grid, mode=mode, padding_mode="zeros",
@@ -107,8 +106,7 @@ def roll_images(angles_rad: torch.Tensor, intrinsics: torch.Tensor | None,
     seen = inside & (weight > 1e-6)
     # The blend's sum of squared weights (all four neighbours counted as valid): 1 on a
     # pixel centre, 1/4 half-way between four.
-    frac = (grid + 1) / 2 * torch.tensor([w - 1, h - 1], dtype=grid.dtype)
-    frac = frac - frac.floor()
+    frac = source - source.floor()
     kept = ((1 - frac) ** 2 + frac**2).prod(-1)
     restore = None
     if gen is not None:
