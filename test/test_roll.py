@@ -84,9 +84,9 @@ def test_a_turn_keeps_depth_edges_as_sharp_as_rendered_and_blends_the_floor():
     got_mixed, got_steps = mixed_pixels(out_depth, out_valid)
     want_mixed, want_steps = mixed_pixels(*as_batch(want_depth, want_labels)[:2])
     assert got_mixed / got_steps < want_mixed / want_steps + 0.05
-    # The floor away from the box stays blended: nearest pixels would be off by 3.5 mm
-    # (median), 13 mm (95th percentile).
-    # (Beside the box and the frame's border, whose neighbours are not all there.)
+    # The floor away from the box and from the frame's border (where not all four neighbours
+    # are in view) stays blended: nearest pixels would be off by 3.5 mm (median), 13 mm
+    # (95th percentile).
     box = cv2.dilate((want_labels == 2).astype(np.uint8), np.ones((9, 9))) > 0
     inside = cv2.erode((out_labels[0] != IGNORE).numpy().astype(np.uint8), np.ones((5, 5)))
     floor = (out_labels[0] == BACKGROUND).numpy() & (inside > 0) & ~box
