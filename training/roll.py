@@ -67,16 +67,24 @@ def roll_sources(angles_rad: torch.Tensor, centre: torch.Tensor, focal: torch.Te
     return torch.stack([(cos * x - sin * y) * fx + cu, (sin * x + cos * y) * fy + cv], -1)
 
 
+def second_difference(t: torch.Tensor, ok: torch.Tensor, dim: int
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``t``'s second difference along ``dim`` at each interior pixel (one shorter at either
+    end) and whether ``ok`` holds for all three pixels it reads."""
+    n = t.shape[dim]
+    before, mid, after = (t.narrow(dim, k, n - 2) for k in range(3))
+    both = ok.narrow(dim, 0, n - 2) & ok.narrow(dim, 1, n - 2) & ok.narrow(dim, 2, n - 2)
+    return before - 2 * mid + after, both
+
+
 def pixel_noise(depth: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """(N,) each image's pixel-to-pixel depth noise as sd / z²: the median absolute second
     difference along rows (over three fully valid pixels, relative to z², edges over 5 %
     of z² left out) as a Gaussian's deviation, / sqrt(6) for a second difference of three
     independent pixels. Surfaces are nearly linear over three pixels, so what remains is
     noise; 0 for an image with nothing to measure."""
-    full = valid > 0.99
-    ok = full[:, :, :-2] & full[:, :, 1:-1] & full[:, :, 2:]
-    mid = depth[:, :, 1:-1].clamp_min(1e-3)
-    second = ((depth[:, :, :-2] - 2 * depth[:, :, 1:-1] + depth[:, :, 2:]) / mid**2).abs()
+    second, ok = second_difference(depth, valid > 0.99, 2)
+    second = (second / depth[:, :, 1:-1].clamp_min(1e-3) ** 2).abs()
     ok &= second < 0.05
     median = torch.where(ok, second, torch.nan).flatten(1).nanmedian(dim=1).values
     return torch.nan_to_num(median, nan=0.0) * 1.4826 / math.sqrt(6.0)
@@ -105,11 +113,8 @@ def depth_edges(depth: torch.Tensor, valid: torch.Tensor, level: torch.Tensor) -
     inverse = torch.where(has, 1 / depth.clamp_min(1e-3), torch.zeros_like(depth))
     edges = torch.zeros_like(has)
     for dim in (1, 2):
-        n = depth.shape[dim]
-        before, mid, after = (inverse.narrow(dim, k, n - 2) for k in range(3))
-        ok = has.narrow(dim, 0, n - 2) & has.narrow(dim, 1, n - 2) & has.narrow(dim, 2, n - 2)
-        bent = ok & ((before - 2 * mid + after).abs() > limit)
-        edges.narrow(dim, 1, n - 2).logical_or_(bent)
+        second, ok = second_difference(inverse, has, dim)
+        edges.narrow(dim, 1, depth.shape[dim] - 2).logical_or_(ok & (second.abs() > limit))
     return edges
 
 
