@@ -42,14 +42,15 @@ def _run(script: str, results: Path, *args: str) -> dict:
 @pytest.mark.parametrize("script, args, section, timed", [
     ("inference.py", ("--quick", "--threads", "1"), "inference", 60),  # --quick: 60 frames
     ("train_step.py", ("--quick",), "training", 4),                    # --quick: 4 steps
+    ("roll_step.py", ("--quick",), "roll_step", 4),                    # --quick: 4 batches
 ])
 def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, section, timed):
     results = tmp_path / "results.json"
     report = _run(script, results, *args)[section]
     assert report["command"].startswith(f"python bench/{script}")
     assert report["machine"]["cores"] >= 1
-    timings = [v["segment_ms"] for v in report["configs"].values()] if section == "inference" \
-        else [v["total"] for v in report["configs"].values()]
+    timing_key = {"inference": "segment_ms", "training": "total"}.get(section)
+    timings = [v[timing_key] if timing_key else v for v in report["configs"].values()]
     # Every configuration timed as many runs as the quick mode asks for, each of real work.
     assert timings and all(t["n"] == timed and t["min"] > 0.1 for t in timings)
     # Provenance instead of machine paths: the revision measured and the model's hash.

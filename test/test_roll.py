@@ -202,3 +202,24 @@ def test_roll_augmentation_is_refused_out_of_range_or_without_augmentation():
     with pytest.raises(ConfigError, match="aug_roll_deg = 10.0 needs augment"):
         TrainConfig(aug_roll_deg=10.0, augment=False).validate()
     assert TrainConfig(aug_roll_deg=12.0).validate().aug_roll_deg == 12.0
+
+
+def test_the_training_loop_measuring_its_images_once_turns_them_the_same():
+    """``train.measure_for_roll`` caches each image's noise and edges; the turned batch is
+    bitwise what measuring them in the batch gives (the same random draws included)."""
+    from training.train import ROLL_EDGES, gather_batch, measure_for_roll
+
+    depth, labels, _ = rendered(0.0)
+    rng = np.random.default_rng(0)
+    noisy = np.where(np.isfinite(depth), depth, 0.0) * (1 + 0.004 * rng.standard_normal(
+        (6, *depth.shape)))
+    arrays = {"depth": noisy.astype(np.float16),                       # as the cache keeps it
+              "valid": np.broadcast_to(np.isfinite(depth), noisy.shape).astype(np.float16),
+              "labels": np.broadcast_to(labels, noisy.shape).astype(np.uint8)}
+    idx = np.array([1, 3, 4])
+    turned = gather_batch(arrays, idx, torch.Generator().manual_seed(7), roll_deg=15.0)
+    measure_for_roll(arrays, chunk=4)                # chunks that split the batch's images
+    assert arrays[ROLL_EDGES][idx].any()
+    cached = gather_batch(arrays, idx, torch.Generator().manual_seed(7), roll_deg=15.0)
+    for got, want in zip(cached[:3], turned[:3]):
+        assert torch.equal(got, want)

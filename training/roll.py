@@ -52,19 +52,29 @@ def principal_points(intrinsics: torch.Tensor | None, n: int, h: int, w: int
     return centre, torch.stack([intrinsics[:, 0] * w, intrinsics[:, 1] * h], 1)
 
 
+def source_terms(angles_rad: torch.Tensor, centre: torch.Tensor, focal: torch.Tensor,
+                 h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``roll_sources`` as the sum of a per-column part (N, 1, w, 2) and a per-row part
+    (N, h, 1, 2): the turn is linear in the pixel's column and row, so one broadcast add
+    makes any whole-batch coordinate map instead of a dozen passes over it."""
+    fx, fy = focal[:, 0, None], focal[:, 1, None]
+    cu, cv = centre[:, 0, None], centre[:, 1, None]
+    x = (torch.arange(w, dtype=torch.float32)[None] - cu) / fx   # (N, w)
+    y = (torch.arange(h, dtype=torch.float32)[None] - cv) / fy   # (N, h)
+    cos, sin = angles_rad.cos()[:, None], angles_rad.sin()[:, None]
+    columns = torch.stack([cos * x * fx + cu, sin * x * fy], -1)[:, None]
+    rows = torch.stack([-sin * y * fx, cos * y * fy + cv], -1)[:, :, None]
+    return columns, rows
+
+
 def roll_sources(angles_rad: torch.Tensor, centre: torch.Tensor, focal: torch.Tensor,
                  h: int, w: int) -> torch.Tensor:
     """(N, h, w, 2) pixel coordinates (u, v): where each pixel of the image seen by a camera
     rolled by ``angles_rad`` (``render.look_at``'s sense) lies in the unrolled image. In
     focal units a pixel at (x', y') of the rolled camera is the point at
     (cos a x' - sin a y', sin a x' + cos a y') of the unrolled one."""
-    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32),
-                          torch.arange(w, dtype=torch.float32), indexing="ij")
-    fx, fy = focal[:, 0, None, None], focal[:, 1, None, None]
-    cu, cv = centre[:, 0, None, None], centre[:, 1, None, None]
-    x, y = (u[None] - cu) / fx, (v[None] - cv) / fy
-    cos, sin = angles_rad.cos()[:, None, None], angles_rad.sin()[:, None, None]
-    return torch.stack([(cos * x - sin * y) * fx + cu, (sin * x + cos * y) * fy + cv], -1)
+    columns, rows = source_terms(angles_rad, centre, focal, h, w)
+    return columns + rows
 
 
 def second_difference(t: torch.Tensor, ok: torch.Tensor, dim: int
@@ -118,9 +128,19 @@ def depth_edges(depth: torch.Tensor, valid: torch.Tensor, level: torch.Tensor) -
     return edges
 
 
+def measure_images(depth: torch.Tensor, valid: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """What ``roll_images`` reads off the unturned images: (N,) ``pixel_noise`` and (N, h, w)
+    ``depth_edges`` at that noise. Over a third of a turn's time on a training batch; a
+    cached image's are the same at every turn, so the training loop measures them once."""
+    noise = pixel_noise(depth, valid)
+    return noise, depth_edges(depth, valid, noise)
+
+
 def roll_images(angles_rad: torch.Tensor, intrinsics: torch.Tensor | None,
                 depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
-                nearest: torch.Tensor | None = None, gen: torch.Generator | None = None
+                nearest: torch.Tensor | None = None, gen: torch.Generator | None = None,
+                measured: tuple[torch.Tensor, torch.Tensor] | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """(N, h, w) depth, valid fraction, labels (long) and optional near-side depths as the
     camera would have seen them rolled by ``angles_rad`` (N,). The intrinsics do not change:
@@ -135,44 +155,51 @@ def roll_images(angles_rad: torch.Tensor, intrinsics: torch.Tensor | None,
     the noise the blend averaged away is drawn again where it blended (module docstring);
     without it the blended depths keep less noise than the image had. Labels take the
     nearest pixel, so every label stays a label; pixels that come from outside the frame get
-    no depth and the ignored label."""
+    no depth and the ignored label. ``measured``, the images' ``measure_images`` when the
+    caller has them at hand (the training loop measures its cached images once), saves
+    measuring them again: they depend on nothing but the unturned image."""
     n, h, w = depth.shape
     centre, focal = principal_points(intrinsics, n, h, w)
-    source = roll_sources(angles_rad.float(), centre.float(), focal.float(), h, w)
-    grid = 2 * source / torch.tensor([w - 1, h - 1], dtype=source.dtype) - 1  # align_corners
-
-    def turn(t: torch.Tensor, mode: str) -> torch.Tensor:
-        return F.grid_sample(t[:, None].float(), grid, mode=mode, padding_mode="zeros",
-                             align_corners=True)[:, 0]
-
+    columns, rows = source_terms(angles_rad.float(), centre.float(), focal.float(), h, w)
+    to_grid = torch.tensor([2 / (w - 1), 2 / (h - 1)])                      # align_corners
+    grid = (columns * to_grid - 1) + rows * to_grid
+    su, sv = (columns[..., k] + rows[..., k] for k in (0, 1))               # (N, h, w) each
+    noise, edges = measured if measured is not None else measure_images(depth, valid)
     has = (valid > 1e-6).float()
-    weight = turn(has, "bilinear")
-    inside = turn(torch.ones_like(depth), "nearest") > 0.5
-    labels = torch.where(inside, turn(labels, "nearest").round().long(),
+    # Every plane turned in one grid_sample per mode: the weights are found once per pixel.
+    extra = [] if nearest is None else [nearest]
+    blended_planes = [has, depth * has, valid, edges.float()] + [t * has for t in extra]
+    nearest_planes = [torch.ones_like(depth), labels.float(), has, depth, valid] + extra
+    bilinear = F.grid_sample(torch.stack(blended_planes, 1).float(), grid, mode="bilinear",
+                             padding_mode="zeros", align_corners=True)
+    nearest_pixel = F.grid_sample(torch.stack(nearest_planes, 1).float(), grid,
+                                  mode="nearest", padding_mode="zeros", align_corners=True)
+    weight, sharp = bilinear[:, 0], bilinear[:, 3] > 1e-6
+    inside = nearest_pixel[:, 0] > 0.5
+    labels = torch.where(inside, nearest_pixel[:, 1].round().long(),
                          torch.full_like(labels, IGNORE))
-    noise = pixel_noise(depth, valid)
     # Any of the four neighbours at an edge: the whole pixel is taken from the nearest one.
-    sharp = turn(depth_edges(depth, valid, noise).float(), "bilinear") > 1e-6
-    seen = inside & torch.where(sharp, turn(has, "nearest") > 0.5, weight > 1e-6)
+    seen = inside & torch.where(sharp, nearest_pixel[:, 2] > 0.5, weight > 1e-6)
     # The blend's sum of squared weights (all four neighbours counted as valid): 1 on a
     # pixel centre, 1/4 half-way between four; 1 where the nearest pixel is taken.
-    frac = source - source.floor()
-    kept = torch.where(sharp, 1.0, ((1 - frac) ** 2 + frac**2).prod(-1))
+    fu, fv = su - su.floor(), sv - sv.floor()
+    kept = torch.where(sharp, 1.0, ((1 - fu) ** 2 + fu**2) * ((1 - fv) ** 2 + fv**2))
     restore = None
     if gen is not None:
         level = noise[:, None, None] * (1 - kept).clamp_min(0).sqrt()
         restore = level * torch.randn(depth.shape, generator=gen)
 
-    def blend(t: torch.Tensor) -> torch.Tensor:
-        blended = turn(t * has, "bilinear") / weight.clamp_min(1e-6)
+    def blend(summed: torch.Tensor, nearest_value: torch.Tensor) -> torch.Tensor:
+        blended = summed / weight.clamp_min(1e-6)
         if restore is not None:
             blended = blended + restore * blended**2
-        blended = torch.where(sharp, turn(t, "nearest"), blended)
+        blended = torch.where(sharp, nearest_value, blended)
         return torch.where(seen, blended, torch.zeros_like(blended))
 
-    valid_out = torch.where(sharp, turn(valid, "nearest"), turn(valid, "bilinear"))
+    valid_out = torch.where(sharp, nearest_pixel[:, 4], bilinear[:, 2])
     valid_out = torch.where(seen, valid_out, torch.zeros_like(weight))
-    return blend(depth), valid_out, labels, (blend(nearest) if nearest is not None else None)
+    near_out = blend(bilinear[:, 4], nearest_pixel[:, 5]) if nearest is not None else None
+    return blend(bilinear[:, 1], nearest_pixel[:, 3]), valid_out, labels, near_out
 
 
 def draw_roll(n: int, max_deg: float, gen: torch.Generator) -> torch.Tensor:
