@@ -37,7 +37,7 @@ ROLL_DEG = 15.0  # shelf model 0.14.0's --aug-roll
 def load_arrays(run: Path, size: tuple[int, int], count: int) -> tuple[dict, str]:
     from training.dataset import cache_path
 
-    path = cache_path(run, "train", size)
+    path = cache_path(run.resolve(), "train", size)
     if path.exists():
         with np.load(path) as data:
             return ({k: data[k][:count] for k in ("depth", "valid", "labels")},
