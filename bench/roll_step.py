@@ -2,7 +2,7 @@
 costs a batch, and what measuring each cached image's noise and depth edges once
 (``train.measure_for_roll``) saves against measuring them in every batch.
 
-    python bench/roll_step.py                       # 3 configurations x 60 batches (~1 min)
+    python bench/roll_step.py                       # 3 configurations x 60 batches (seconds)
     python bench/roll_step.py --run runs/tote --batches 120
     python bench/roll_step.py --quick               # a smoke run
 
@@ -40,8 +40,9 @@ def load_arrays(run: Path, size: tuple[int, int], count: int) -> tuple[dict, str
     path = cache_path(run.resolve(), "train", size)
     if path.exists():
         with np.load(path) as data:
+            shown = path.relative_to(REPO) if path.is_relative_to(REPO) else path
             return ({k: data[k][:count] for k in ("depth", "valid", "labels")},
-                    f"first {count} images of {path.relative_to(REPO)}")
+                    f"first {count} images of {shown}")
     rng = np.random.default_rng(0)
     w, h = size
     depth = np.broadcast_to(2.0 + np.linspace(-0.3, 0.3, h)[:, None], (count, h, w)).copy()

@@ -204,22 +204,47 @@ def test_roll_augmentation_is_refused_out_of_range_or_without_augmentation():
     assert TrainConfig(aug_roll_deg=12.0).validate().aug_roll_deg == 12.0
 
 
-def test_the_training_loop_measuring_its_images_once_turns_them_the_same():
+def test_the_training_loop_measuring_its_images_once_turns_them_the_same(monkeypatch):
     """``train.measure_for_roll`` caches each image's noise and edges; the turned batch is
-    bitwise what measuring them in the batch gives (the same random draws included)."""
+    bitwise what measuring them in the batch gives (the same random draws included), and
+    with the cache the batch measures nothing."""
+    import training.roll
     from training.train import ROLL_EDGES, gather_batch, measure_for_roll
 
-    depth, labels, _ = rendered(0.0)
+    depth, labels, camera = rendered(0.0)
     rng = np.random.default_rng(0)
     noisy = np.where(np.isfinite(depth), depth, 0.0) * (1 + 0.004 * rng.standard_normal(
         (6, *depth.shape)))
     arrays = {"depth": noisy.astype(np.float16),                       # as the cache keeps it
               "valid": np.broadcast_to(np.isfinite(depth), noisy.shape).astype(np.float16),
-              "labels": np.broadcast_to(labels, noisy.shape).astype(np.uint8)}
+              "labels": np.broadcast_to(labels, noisy.shape).astype(np.uint8),
+              "nearest": (0.97 * noisy).astype(np.float16),
+              "intrinsics": np.repeat(camera.normalised()[None], 6, 0).astype(np.float32)}
     idx = np.array([1, 3, 4])
     turned = gather_batch(arrays, idx, torch.Generator().manual_seed(7), roll_deg=15.0)
     measure_for_roll(arrays, chunk=4)                # chunks that split the batch's images
     assert arrays[ROLL_EDGES][idx].any()
+
+    def measured_again(*args):
+        raise AssertionError("the batch measured its images again")
+
+    monkeypatch.setattr(training.roll, "measure_images", measured_again)
     cached = gather_batch(arrays, idx, torch.Generator().manual_seed(7), roll_deg=15.0)
-    for got, want in zip(cached[:3], turned[:3]):
+    for got, want in zip(cached, turned):
         assert torch.equal(got, want)
+
+
+def test_the_near_side_depth_turns_with_the_depth_at_edges_and_between_them():
+    """Every plane keeps its role in the stacked turn: a near-side depth that is 0.9 x the
+    depth comes out 0.9 x the turned depth, on the blended pixels and on those taken from
+    the nearest pixel next to the box's edges alike."""
+    depth, labels, camera = rendered(0.0)
+    depth_t, valid_t, labels_t = as_batch(depth, labels)
+    out_depth, out_valid, _, out_near = roll_images(
+        torch.tensor([math.radians(12.0)]), torch.from_numpy(camera.normalised()[None]),
+        depth_t, valid_t, labels_t, 0.9 * depth_t)
+    seen = out_valid > 0
+    edges = depth_edges(depth_t, valid_t, pixel_noise(depth_t, valid_t))
+    assert edges.any() and seen.sum() > 10_000
+    assert torch.allclose(out_near[seen], 0.9 * out_depth[seen], rtol=1e-5)
+    assert (out_near[~seen] == 0).all()

@@ -131,7 +131,7 @@ def depth_edges(depth: torch.Tensor, valid: torch.Tensor, level: torch.Tensor) -
 def measure_images(depth: torch.Tensor, valid: torch.Tensor
                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """What ``roll_images`` reads off the unturned images: (N,) ``pixel_noise`` and (N, h, w)
-    ``depth_edges`` at that noise. Over a third of a turn's time on a training batch; a
+    ``depth_edges`` at that noise. About 30 % of a turn's time on a training batch; a
     cached image's are the same at every turn, so the training loop measures them once."""
     noise = pixel_noise(depth, valid)
     return noise, depth_edges(depth, valid, noise)

@@ -315,7 +315,8 @@ def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
                   tensor("nearest", np.float32))
     if gen is not None:
         measured = ((tensor(ROLL_NOISE, np.float32), tensor(ROLL_EDGES, bool))
-                    if roll_deg > 0 and ROLL_NOISE in arrays else None)
+                    if roll_deg > 0 and ROLL_NOISE in arrays and ROLL_EDGES in arrays
+                    else None)
         batch = augment(*batch[:3], gen, noise_level, batch.intrinsics, batch.nearest, holes,
                         roll_deg, measured)
     return batch
