@@ -4,6 +4,7 @@ bf16 autocast or channels-last memory format would help, and what the IoU loss c
     python bench/train_step.py              # 5 configurations x 24 timed steps (~4 min on 2 cores)
     python bench/train_step.py --steps 48
     python bench/train_step.py --quick      # a smoke run (native precisions only)
+    python bench/train_step.py --model tote --run runs/tote   # another shipped model's recipe
 
 A step is what ``training.train`` does per batch of 32 at 160 x 120 (the ``TrainConfig``
 defaults), through the training loop's own functions: ``gather_batch`` (gather + augment),
@@ -15,7 +16,12 @@ training/losses.py added) run interleaved in rotating blocks so load changes on 
 machine hit them alike. Batches come from the default run's working-size cache when it
 exists, else synthetic depth.
 
-Writes the ``training`` section of bench/results.json.
+``--model`` (a shipped task's name or a checkpoint) times that model's recipe instead: its
+input channels (normalisation: heights from the support plane of a task on a table, local
+relief), its network's classes and the augmentations it was trained with (holes, roll,
+noise level; the noise level unscaled by the task's sensor), on the images of ``--run``.
+
+Writes the ``training`` section of bench/results.json, ``training.<task>`` with ``--model``.
 """
 
 from __future__ import annotations
@@ -37,15 +43,17 @@ CONFIGS = (("fp32", False, False), ("fp32", True, False), ("bf16", False, False)
            ("bf16", True, False), ("bf16", True, True))
 
 
-def load_arrays(size: tuple[int, int]) -> tuple[dict, str]:
+def load_arrays(size: tuple[int, int], run: Path = REPO / "runs" / "default"
+                ) -> tuple[dict, str]:
     from task_outcome_ros.labels import DEFAULT_TABLE
     from training.dataset import cache_path
 
-    path = cache_path(REPO / "runs" / "default", "train", size)
+    path = cache_path(run.resolve(), "train", size)
     if path.exists():
         with np.load(path) as data:
             arrays = {k: data[k][:512] for k in ("depth", "valid", "labels")}
-        return arrays, f"first 512 images of {path.relative_to(REPO)}"
+        shown = path.relative_to(REPO) if path.is_relative_to(REPO) else path
+        return arrays, f"first 512 images of {shown}"
     rng = np.random.default_rng(0)
     w, h = size
     v = np.linspace(-0.3, 0.3, h, dtype=np.float32)[:, None]
@@ -60,6 +68,10 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=24, help="timed steps per configuration")
     ap.add_argument("--quick", action="store_true",
                     help="4 timed steps per configuration, bf16 only where it is native")
+    ap.add_argument("--model", help="a shipped task's name or a checkpoint whose recipe to "
+                    "time (default: the TrainConfig defaults, the default task's input)")
+    ap.add_argument("--run", type=Path, default=REPO / "runs" / "default",
+                    help="run whose training cache gives the images (default runs/default)")
     args = ap.parse_args()
     steps = 4 if args.quick else args.steps
     block = 2 if args.quick else 4
@@ -74,6 +86,7 @@ def main() -> None:
     configs = CONFIGS if native_bf16 or not args.quick else \
         tuple(c for c in CONFIGS if c[0] != "bf16")
 
+    from task_outcome_ros.inference import resolve_model_path
     from task_outcome_ros.model import DEFAULT_NORMALISATION, build_model, network_input
     from training.config import TrainConfig
     from training.train import (
@@ -84,17 +97,20 @@ def main() -> None:
         optimise_step,
     )
 
-    cfg = TrainConfig()
+    cfg, norm, model_args, task = TrainConfig(), DEFAULT_NORMALISATION, None, None
+    if args.model:
+        cfg, norm, model_args, task = model_recipe(args.model)
+    model_args = model_args or cfg.model_args
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(0)
-    arrays, source = load_arrays(cfg.input_size)
+    arrays, source = load_arrays(cfg.input_size, args.run)
     n = len(arrays["depth"])
-    # The default task's classes, as the nets below have (the timing does not depend on them).
+    # The model's classes, as the nets below have (the timing does not depend on them).
     weights = class_weights(arrays["labels"], cfg.class_weight_power,
-                            cfg.model_args["num_classes"])
+                            model_args["num_classes"])
     nets = {}
     for dtype, channels_last, iou_loss in configs:
-        net = build_model(cfg.model_args)
+        net = build_model(model_args)
         if channels_last:
             net = net.to(memory_format=torch.channels_last)
         optim = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -108,9 +124,10 @@ def main() -> None:
         net, optim, average = nets[config]
         t0 = time.perf_counter()
         idx = np.sort(torch.randint(0, n, (cfg.batch_size,), generator=gen).numpy())
-        depth, valid, labels, _, _ = gather_batch(arrays, idx, gen)
+        depth, valid, labels, _, _ = gather_batch(arrays, idx, gen, cfg.aug_noise,
+                                                  cfg.aug_holes, cfg.aug_roll_deg)
         t1 = time.perf_counter()
-        x = network_input(depth, valid, DEFAULT_NORMALISATION)
+        x = network_input(depth, valid, norm)
         if config[1]:
             x = x.contiguous(memory_format=torch.channels_last)
         t2 = time.perf_counter()
@@ -142,9 +159,11 @@ def main() -> None:
 
     results = {name(c): {k: percentiles(v) for k, v in timings[c].items()} for c in configs}
     base = results["fp32_contiguous"]["total"]["p50"]
-    record("training", {
+    record("training" if task is None else f"training.{task}", {
+        "model": args.model, "normalisation": norm,
+        "augment": {"noise": cfg.aug_noise, "holes": cfg.aug_holes, "roll_deg": cfg.aug_roll_deg},
         "batch": cfg.batch_size, "input_size": list(cfg.input_size), "threads": cfg.threads,
-        "model_args": cfg.model_args, "data": source, "timed_steps_per_config": steps,
+        "model_args": model_args, "data": source, "timed_steps_per_config": steps,
         "iou_loss_weight": cfg.lovasz_weight, "cpu_native_bf16": native_bf16,
         "wall_s": round(wall, 1), "configs": results,
         "total_p50_over_fp32_contiguous": {k: round(v["total"]["p50"] / base, 2)
@@ -155,7 +174,23 @@ def main() -> None:
                 "(forward + class-weighted loss + backward + AdamW); *_iou_loss adds the "
                 "per-image outcome IoU loss (training/losses.py) as training does by default; "
                 "configurations interleaved in rotating blocks; shared, noisy machine",
-    }, command="python bench/train_step.py " + " ".join(sys.argv[1:]))
+    }, command="python bench/train_step.py " + " ".join(sys.argv[1:]),
+        model=resolve_model_path(args.model) if args.model else None)
+
+
+def model_recipe(model: str):
+    """(TrainConfig, normalisation, model_args, task) of a shipped model or checkpoint: what
+    its training loop ran, so that its step can be timed."""
+    from task_outcome_ros.checkpoint import load
+    from task_outcome_ros.inference import resolve_model_path
+    from training.config import TrainConfig
+
+    loaded = load(resolve_model_path(model))
+    trained = loaded.train_config.get("train", {})
+    known = {k: v for k, v in trained.items() if k in TrainConfig.__dataclass_fields__}
+    known["input_size"] = tuple(known.get("input_size", TrainConfig().input_size))
+    task = (loaded.train_config.get("dataset") or {}).get("task", "default")
+    return TrainConfig(**known), loaded.normalisation, loaded.model_args, task
 
 
 if __name__ == "__main__":

@@ -43,22 +43,28 @@ def _run(script: str, results: Path, *args: str) -> dict:
     ("inference.py", ("--quick", "--threads", "1"), "inference", 60),  # --quick: 60 frames
     ("train_step.py", ("--quick",), "training", 4),                    # --quick: 4 steps
     ("roll_step.py", ("--quick",), "roll_step", 4),                    # --quick: 4 batches
+    ("train_step.py", ("--quick", "--model", "tote"), "training.tote", 4),  # its 4 channels
 ])
 def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, section, timed):
     results = tmp_path / "results.json"
     report = _run(script, results, *args)[section]
     assert report["command"].startswith(f"python bench/{script}")
     assert report["machine"]["cores"] >= 1
-    timing_key = {"inference": "segment_ms", "training": "total"}.get(section)
+    timing_key = {"inference": "segment_ms", "training": "total"}.get(section.split(".")[0])
     timings = [v[timing_key] if timing_key else v for v in report["configs"].values()]
     # Every configuration timed as many runs as the quick mode asks for, each of real work.
     assert timings and all(t["n"] == timed and t["min"] > 0.1 for t in timings)
     # Provenance instead of machine paths: the revision measured and the model's hash.
     assert report["git_revision"] and len(report["git_revision"].split("+")[0]) == 12
-    shipped = REPO / "task_outcome_ros" / "models" / "outcome_fcn.pt"
+    shipped = REPO / "task_outcome_ros" / "models" / (
+        "outcome_fcn_tote.pt" if section.endswith(".tote") else "outcome_fcn.pt")
     assert report["shipped_model_sha256"] == hashlib.sha256(shipped.read_bytes()).hexdigest()
     text = results.read_text()
     assert str(REPO) not in text and sys.prefix not in text
+    if section == "training.tote":   # the tote model's own input and augmentation were timed
+        assert report["model_args"]["in_channels"] == 4
+        assert report["normalisation"]["relief_window_px"] == 15
+        assert report["augment"]["holes"] == 0.5
 
 
 def test_measured_results_hold_no_machine_paths():
