@@ -328,6 +328,10 @@ def test_short_real_training_improves_the_loss_and_evaluates(small_run):
     ckpt = checkpoint.load(small_run / "train" / "best.pt")
     assert ckpt.train_config["train"]["epochs"] == 3
     assert ckpt.input_size == (160, 120)
+    # The layout left to the machine: both timed, the faster one used and recorded.
+    assert ckpt.train_config["train"]["channels_last"] == "auto"
+    chosen = "channels-last" if ckpt.extra["channels_last"] else "contiguous"
+    assert f"{chosen} activations (chosen: " in r.stdout
 
     r = _cli("evaluate", "--out", str(small_run), "--backend", "torch")
     assert r.returncode == 0, r.stderr[-2000:]
@@ -495,7 +499,9 @@ def test_the_schedule_is_fitted_to_the_budget_after_the_first_epoch(small_run, t
     readings = itertools.chain([0.0, 0.0, 60.0, 60.0, 60.0, 120.0], itertools.repeat(120.0))
     monkeypatch.setattr(train_module, "time",
                         SimpleNamespace(perf_counter=lambda: next(readings)))
-    cfg = TrainConfig(epochs=3, batch_size=8, device="cpu", max_minutes=2.5)
+    # The layout pinned: timing the two layouts would read the mocked clock too.
+    cfg = TrainConfig(epochs=3, batch_size=8, device="cpu", max_minutes=2.5,
+                      channels_last=True)
     train_module.train(run, cfg, progress=False)
     assert "the schedule now spans 2 epochs" in capsys.readouterr().out
     assert [h["epoch"] for h in json.loads((run / "train" / "history.json").read_text())] \
@@ -506,6 +512,22 @@ def test_the_schedule_is_fitted_to_the_budget_after_the_first_epoch(small_run, t
     assert last.extra["schedule_epochs"] == 2 and last.train_config["train"]["epochs"] == 3
     train_module.train(run, cfg, progress=False)        # resumed: the fitted run is finished
     assert len(json.loads((run / "train" / "history.json").read_text())) == 2
+
+
+def test_layout_timing_times_both_layouts_and_leaves_the_random_stream_alone():
+    from training.train import autocast_factory, build_model, layout_step_seconds
+
+    cfg = TrainConfig(base_width=4)
+    args = {**cfg.model_args, "in_channels": 3}
+    x, labels = torch.rand(2, 3, 32, 48), torch.randint(0, 5, (2, 32, 48))
+    torch.manual_seed(3)
+    before = torch.rand(4)
+    torch.manual_seed(3)
+    seconds = layout_step_seconds(args, x, labels, None, autocast_factory("fp32", "cpu"),
+                                  None, cfg)
+    assert set(seconds) == {True, False} and all(0 < s < 60 for s in seconds.values())
+    assert torch.equal(torch.rand(4), before)       # the run's own draws do not move
+    assert isinstance(build_model(args), torch.nn.Module)
 
 
 def test_auto_precision_is_mixed_only_where_the_hardware_is_native(monkeypatch):

@@ -202,7 +202,8 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help="autocast: auto = fp16 on CUDA, bf16 on CPUs with native bf16, else "
                         "fp32 (default auto)")
     p.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
-                   help="NHWC activations (default on: faster on CPU, see bench/train_step.py)")
+                   help="NHWC activations on or off (default: the faster layout on this "
+                        "machine, timed before the first epoch; see bench/train_step.py)")
     p.add_argument("--train-seed", type=non_negative_int, default=None)
     p.add_argument("--no-resume", action="store_true", help="start training from scratch")
     p.add_argument("--ship", action="store_true",

@@ -834,9 +834,11 @@ class TrainConfig:
     # auto: fp16 on CUDA, bf16 on a CPU with native bf16 (AVX512-BF16/AMX), else fp32
     # (train.resolve_precision). bf16 | off force it.
     amp: str = "auto"
-    # NHWC activations: ~0.7x the fp32 step time on the 2-core EPYC, ~0.5x with bf16
-    # (bench/train_step.py); --no-channels-last turns it off.
-    channels_last: bool = True
+    # NHWC activations: ~0.7x the fp32 step time on the 2-core EPYC, ~0.5x with bf16, but
+    # 1.48x the contiguous bf16 step on an AMX Xeon (bench/train_step.py). "auto": the
+    # faster on this machine, timed before the first epoch (train.layout_step_seconds);
+    # true / false (--channels-last / --no-channels-last) force it.
+    channels_last: bool | str = "auto"
     threads: int = 2
     seed: int = 0
 
@@ -904,7 +906,10 @@ class TrainConfig:
                                      ("amp", self.amp, ("auto", "bf16", "off"))):
             if value not in allowed:
                 raise ConfigError(f"{o}.{name} = {value!r}: expected one of {allowed}")
-        for name in ("channels_last", "camera_intrinsics", "nearest_height"):
+        if not (isinstance(self.channels_last, bool) or self.channels_last == "auto"):
+            raise ConfigError(f"{o}.channels_last = {self.channels_last!r}: expected true, "
+                              "false or \"auto\"")
+        for name in ("camera_intrinsics", "nearest_height"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{o}.{name} = {getattr(self, name)!r}: expected true/false")
         return self

@@ -6,8 +6,8 @@ augmentation (mirror, small shifts, depth scale, re-drawn axial noise and dropou
 labels where the objects are), images with an object near the task's inside / partly-inside
 boundary drawn more often (``near_boundary_weight``: where most mistakes are), mixed precision
 where the hardware does it natively (fp16 on CUDA, bf16 on CPUs with AVX512-BF16/AMX),
-channels-last activations, resumable self-describing checkpoints after every epoch, a
-training-curve plot.
+the memory layout (channels-last or contiguous) that steps faster on this machine,
+resumable self-describing checkpoints after every epoch, a training-curve plot.
 
 Efficiency on 2 CPU cores (measured, see README): images are decoded and shrunk once into the
 cache (training.dataset.build_cache), so an epoch is pure tensor work; augmentation runs on the
@@ -357,6 +357,32 @@ def weighted_cross_entropy(logits: torch.Tensor, labels: torch.Tensor,
     return (pixel_weights * per_pixel).sum() / total.clamp_min(1e-12)
 
 
+def layout_step_seconds(model_args: dict, x: torch.Tensor, labels: torch.Tensor,
+                        weights: torch.Tensor | None, autocast, scaler, cfg: TrainConfig,
+                        rounds: int = 2) -> dict[bool, float]:
+    """{channels_last: seconds} of a training step on this machine, each layout's fastest
+    of ``rounds`` interleaved steps after one to warm up, on throwaway copies of the network.
+    Which layout is faster depends on the CPU (bench/train_step.py: channels-last 0.87x
+    contiguous on a 2-core EPYC, 1.48x on an AMX Xeon), so ``TrainConfig.channels_last``
+    "auto" measures it. The random state is put back, so the run's own draws do not move."""
+    nets = {}
+    with torch.random.fork_rng(devices=[]):
+        for layout in (True, False):
+            fmt = torch.channels_last if layout else torch.contiguous_format
+            net = build_model(model_args).to(x.device, memory_format=fmt).train()
+            optim = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+            nets[layout] = (net, optim, x.contiguous(memory_format=fmt))
+        best = {True: math.inf, False: math.inf}
+        for r in range(rounds + 1):
+            for layout, (net, optim, xl) in nets.items():
+                started = time.perf_counter()
+                optimise_step(net, optim, xl, labels, weights, autocast, scaler,
+                              cfg.lovasz_weight).item()
+                if r:                                             # round 0 warms up
+                    best[layout] = min(best[layout], time.perf_counter() - started)
+    return best
+
+
 def optimise_step(model, optim, x: torch.Tensor, labels: torch.Tensor,
                   weights: torch.Tensor | None, autocast, scaler, lovasz_weight: float = 0.0,
                   pixel_weights: torch.Tensor | None = None) -> torch.Tensor:
@@ -447,10 +473,12 @@ def near_boundary_sample_weights(run_dir: Path, indices: np.ndarray, weight: flo
     return np.where(near, weight, 1.0)
 
 
-# Fields that say how a run is executed, not what it learns: a resume may change them. amp is
+# Fields that say how a run is executed, not what it learns: a resume may change them (the
+# activations' memory layout among them). amp is
 # compared by the precision it resolves to ("auto" and "bf16" are the same run on a CPU with
 # native bf16), device through that precision too.
-RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp"})
+RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp",
+                                "channels_last"})
 # Training fields saved under an older name: the same setting (a resume is not refused).
 RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
@@ -548,18 +576,29 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
                   "num_classes": table.num_classes}
     outcome_ids = sorted(table.outcome_ids.values())
     model = build_model(model_args).to(device)
-    memory_format = torch.channels_last if cfg.channels_last else torch.contiguous_format
-    model = model.to(memory_format=memory_format)
-    optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    average = WeightAverage(model, cfg.ema_decay)
     if device.type == "cpu" and cfg.amp == "bf16" and not cpu_has_native_bf16():
         print("warning: --amp bf16 on a CPU without AVX512-BF16/AMX is emulated and may be "
               "slower than fp32 (--amp off)")
     precision = resolve_precision(cfg.amp, device.type)
     scaler = torch.amp.GradScaler("cuda") if precision == "fp16" else None
     autocast = autocast_factory(precision, device.type)
+    channels_last, layout_note = cfg.channels_last, "set"
+    if channels_last == "auto":
+        sample = gather_batch(train_arrays, np.arange(min(cfg.batch_size, len(
+            train_arrays["indices"]))), None)
+        x = network_input(sample.depth, sample.valid, norm, sample.intrinsics,
+                          nearest=sample.nearest).to(device)
+        step_s = layout_step_seconds(model_args, x, sample.labels.to(device), weights,
+                                     autocast, scaler, cfg)
+        channels_last = step_s[True] < step_s[False]
+        layout_note = (f"chosen: {step_s[True]:.3f} s a step channels-last, "
+                       f"{step_s[False]:.3f} s contiguous")
+    memory_format = torch.channels_last if channels_last else torch.contiguous_format
+    model = model.to(memory_format=memory_format)
+    optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    average = WeightAverage(model, cfg.ema_decay)
     print(f"train: {device.type}, {'fp32' if precision == 'fp32' else precision + ' autocast'}, "
-          f"{'channels-last' if cfg.channels_last else 'contiguous'} activations")
+          f"{'channels-last' if channels_last else 'contiguous'} activations ({layout_note})")
 
     n = len(train_arrays["indices"])
     steps_per_epoch = math.ceil(n / cfg.batch_size)
@@ -632,6 +671,7 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         key = (metrics["image_all_correct"], metrics["pixel_miou"])
         extra = {"history": history, "best_key": list(max(key, best_key)),
                  "dataset": str(run_dir), "n_train": n, "precision": precision,
+                 "channels_last": channels_last,
                  "schedule_epochs": schedule_epochs}
         common = dict(model_args=model_args, label_table=table, input_size=cfg.input_size,
                       normalisation=norm,
