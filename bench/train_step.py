@@ -94,6 +94,7 @@ def main() -> None:
         autocast_factory,
         class_weights,
         gather_batch,
+        measure_for_roll,
         optimise_step,
     )
 
@@ -104,6 +105,8 @@ def main() -> None:
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(0)
     arrays, source = load_arrays(cfg.input_size, args.run)
+    if cfg.aug_roll_deg > 0:       # as the training loop does: each image measured once
+        measure_for_roll(arrays)
     n = len(arrays["depth"])
     # The model's classes, as the nets below have (the timing does not depend on them).
     weights = class_weights(arrays["labels"], cfg.class_weight_power,

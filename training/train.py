@@ -328,7 +328,7 @@ ROLL_NOISE, ROLL_EDGES = "roll_noise", "roll_edges"
 def measure_for_roll(arrays: dict, chunk: int = 256) -> None:
     """Adds each cached image's ``roll.measure_images`` (noise level, depth edges) to
     ``arrays``: they depend only on the image, and measuring them once instead of at every
-    turn takes about a third off the roll's cost per batch."""
+    turn takes about 30 % off the roll's cost per batch (bench/roll_step.py)."""
     depth, valid = arrays["depth"], arrays["valid"]
     noise = np.zeros(len(depth), np.float32)
     edges = np.zeros(depth.shape, bool)
@@ -474,9 +474,9 @@ def near_boundary_sample_weights(run_dir: Path, indices: np.ndarray, weight: flo
 
 
 # Fields that say how a run is executed, not what it learns: a resume may change them (the
-# activations' memory layout among them). amp is
-# compared by the precision it resolves to ("auto" and "bf16" are the same run on a CPU with
-# native bf16), device through that precision too.
+# activations' memory layout among them). amp is compared by the precision it resolves to
+# ("auto" and "bf16" are the same run on a CPU with native bf16), device through that
+# precision too.
 RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp",
                                 "channels_last"})
 # Training fields saved under an older name: the same setting (a resume is not refused).
