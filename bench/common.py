@@ -74,6 +74,21 @@ def relative_paths(value: Any) -> Any:
     return value
 
 
+def cached_training_images(run: Path, size: tuple[int, int], count: int
+                           ) -> tuple[dict, str] | None:
+    """The first ``count`` images (depth, valid, labels) of ``run``'s working-size training
+    cache and a line saying where they came from; None when the run has no such cache."""
+    from training.dataset import cache_path
+
+    path = cache_path(Path(run).resolve(), "train", size)
+    if not path.exists():
+        return None
+    with np.load(path) as data:
+        arrays = {k: data[k][:count] for k in ("depth", "valid", "labels")}
+    shown = path.relative_to(REPO) if path.is_relative_to(REPO) else path
+    return arrays, f"first {count} images of {shown}"
+
+
 def record(section: str, data: dict, command: str, model: Path | None = None) -> None:
     """Merge one benchmark's figures into bench/results.json under ``section``, with the git
     revision measured and the sha256 of the model measured (``model``: a shipped model other

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import percentiles, record  # noqa: E402
+from common import cached_training_images, percentiles, record  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -35,14 +35,9 @@ ROLL_DEG = 15.0  # shelf model 0.14.0's --aug-roll
 
 
 def load_arrays(run: Path, size: tuple[int, int], count: int) -> tuple[dict, str]:
-    from training.dataset import cache_path
-
-    path = cache_path(run.resolve(), "train", size)
-    if path.exists():
-        with np.load(path) as data:
-            shown = path.relative_to(REPO) if path.is_relative_to(REPO) else path
-            return ({k: data[k][:count] for k in ("depth", "valid", "labels")},
-                    f"first {count} images of {shown}")
+    cached = cached_training_images(run, size, count)
+    if cached is not None:
+        return cached
     rng = np.random.default_rng(0)
     w, h = size
     depth = np.broadcast_to(2.0 + np.linspace(-0.3, 0.3, h)[:, None], (count, h, w)).copy()

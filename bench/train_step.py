@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import percentiles, record  # noqa: E402
+from common import cached_training_images, percentiles, record  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -46,21 +46,17 @@ CONFIGS = (("fp32", False, False), ("fp32", True, False), ("bf16", False, False)
 def load_arrays(size: tuple[int, int], run: Path = REPO / "runs" / "default"
                 ) -> tuple[dict, str]:
     from task_outcome_ros.labels import DEFAULT_TABLE
-    from training.dataset import cache_path
 
-    path = cache_path(run.resolve(), "train", size)
-    if path.exists():
-        with np.load(path) as data:
-            arrays = {k: data[k][:512] for k in ("depth", "valid", "labels")}
-        shown = path.relative_to(REPO) if path.is_relative_to(REPO) else path
-        return arrays, f"first 512 images of {shown}"
+    cached = cached_training_images(run, size, 512)
+    if cached is not None:
+        return cached
     rng = np.random.default_rng(0)
     w, h = size
     v = np.linspace(-0.3, 0.3, h, dtype=np.float32)[:, None]
     depth = (2.0 + v + rng.normal(0, 0.004, (512, h, w))).astype(np.float32)
     return ({"depth": depth, "valid": np.ones_like(depth),
              "labels": rng.integers(0, DEFAULT_TABLE.num_classes, depth.shape).astype(np.uint8)},
-            "synthetic tilted planes (no runs/default cache)")
+            "synthetic tilted planes (no cache in --run)")
 
 
 def main() -> None:
@@ -99,8 +95,9 @@ def main() -> None:
     )
 
     cfg, norm, model_args, task = TrainConfig(), DEFAULT_NORMALISATION, None, None
-    if args.model:
-        cfg, norm, model_args, task = model_recipe(args.model)
+    model_path = resolve_model_path(args.model) if args.model else None
+    if model_path:
+        cfg, norm, model_args, task = model_recipe(model_path)
     model_args = model_args or cfg.model_args
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(0)
@@ -178,17 +175,16 @@ def main() -> None:
                 "per-image outcome IoU loss (training/losses.py) as training does by default; "
                 "configurations interleaved in rotating blocks; shared, noisy machine",
     }, command="python bench/train_step.py " + " ".join(sys.argv[1:]),
-        model=resolve_model_path(args.model) if args.model else None)
+        model=model_path)
 
 
-def model_recipe(model: str):
-    """(TrainConfig, normalisation, model_args, task) of a shipped model or checkpoint: what
-    its training loop ran, so that its step can be timed."""
+def model_recipe(model_path: Path):
+    """(TrainConfig, normalisation, model_args, task) of a checkpoint: what its training loop
+    ran, so that its step can be timed."""
     from task_outcome_ros.checkpoint import load
-    from task_outcome_ros.inference import resolve_model_path
     from training.config import TrainConfig
 
-    loaded = load(resolve_model_path(model))
+    loaded = load(model_path)
     trained = loaded.train_config.get("train", {})
     known = {k: v for k, v in trained.items() if k in TrainConfig.__dataclass_fields__}
     known["input_size"] = tuple(known.get("input_size", TrainConfig().input_size))
