@@ -209,7 +209,7 @@ def test_the_training_loop_measuring_its_images_once_turns_them_the_same(monkeyp
     bitwise what measuring them in the batch gives (the same random draws included), and
     with the cache the batch measures nothing."""
     import training.roll
-    from training.train import ROLL_EDGES, gather_batch, measure_for_roll
+    from training.train import ROLL_EDGES, cached_edges, gather_batch, measure_for_roll
 
     depth, labels, camera = rendered(0.0)
     rng = np.random.default_rng(0)
@@ -223,7 +223,12 @@ def test_the_training_loop_measuring_its_images_once_turns_them_the_same(monkeyp
     idx = np.array([1, 3, 4])
     turned = gather_batch(arrays, idx, torch.Generator().manual_seed(7), roll_deg=15.0)
     measure_for_roll(arrays, chunk=4)                # chunks that split the batch's images
-    assert arrays[ROLL_EDGES][idx].any()
+    assert arrays[ROLL_EDGES].shape == (6, 120, 20)   # 8 pixels a byte
+    _, edges = training.roll.measure_images(torch.from_numpy(noisy[idx].astype(np.float16)
+                                                             .astype(np.float32)),
+                                            torch.from_numpy(arrays["valid"][idx]
+                                                             .astype(np.float32)))
+    assert edges.any() and torch.equal(cached_edges(arrays, idx), edges)
 
     def measured_again(*args):
         raise AssertionError("the batch measured its images again")
