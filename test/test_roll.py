@@ -239,6 +239,20 @@ def test_the_training_loop_measuring_its_images_once_turns_them_the_same(monkeyp
         assert torch.equal(got, want)
 
 
+def test_cached_edges_come_back_as_measured_for_any_image_width():
+    """The packed edges unpack to the same bool images, also when the width is not a whole
+    number of bytes (13 pixels: 2 bytes a row, 3 bits of padding)."""
+    from training.train import ROLL_EDGES, cached_edges
+
+    edges = np.random.default_rng(3).random((4, 5, 13)) < 0.3
+    arrays = {"depth": np.zeros(edges.shape, np.float16),
+              ROLL_EDGES: np.packbits(edges, axis=-1)}
+    assert arrays[ROLL_EDGES].shape == (4, 5, 2)
+    idx = np.array([0, 2, 3])
+    got = cached_edges(arrays, idx)
+    assert got.dtype == torch.bool and torch.equal(got, torch.from_numpy(edges[idx]))
+
+
 def test_the_near_side_depth_turns_with_the_depth_at_edges_and_between_them():
     """Every plane keeps its role in the stacked turn: a near-side depth that is 0.9 x the
     depth comes out 0.9 x the turned depth, on the blended pixels and on those taken from

@@ -345,7 +345,7 @@ def cached_edges(arrays: dict, idx: np.ndarray) -> torch.Tensor:
     """The depth edges ``measure_for_roll`` kept for the images ``idx``, unpacked (bool)."""
     width = arrays["depth"].shape[-1]
     return torch.from_numpy(np.unpackbits(arrays[ROLL_EDGES][idx], axis=-1,
-                                          count=width).astype(bool))
+                                          count=width).view(bool))
 
 
 def weighted_cross_entropy(logits: torch.Tensor, labels: torch.Tensor,
