@@ -182,14 +182,16 @@ def model_recipe(model_path: Path):
     """(TrainConfig, normalisation, model_args, task) of a checkpoint: what its training loop
     ran, so that its step can be timed."""
     from task_outcome_ros.checkpoint import load
-    from training.config import TrainConfig
+    from training.config import TrainConfig, _from_dict
+    from training.train import RENAMED_TRAIN_FIELDS
 
     loaded = load(model_path)
-    trained = loaded.train_config.get("train", {})
-    known = {k: v for k, v in trained.items() if k in TrainConfig.__dataclass_fields__}
-    known["input_size"] = tuple(known.get("input_size", TrainConfig().input_size))
+    # Rebuilt as a saved dataset config is (lists to tuples, unknown fields refused), older
+    # field names under today's.
+    trained = {RENAMED_TRAIN_FIELDS.get(k, k): v
+               for k, v in loaded.train_config.get("train", {}).items()}
     task = (loaded.train_config.get("dataset") or {}).get("task", "default")
-    return TrainConfig(**known), loaded.normalisation, loaded.model_args, task
+    return _from_dict(TrainConfig, trained), loaded.normalisation, loaded.model_args, task
 
 
 if __name__ == "__main__":
