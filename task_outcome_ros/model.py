@@ -28,6 +28,10 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    than the window (a table top, a tote's floor) read 0 up to their edges; narrow ones (walls)
    read their height. With ``relief_smoothing_px`` it is the relief of the heights' mean over
    a square of valid pixels (``valid_mean``), so that sensor noise does not read as relief.
+   With ``"relief_beneath_support": True`` (and ``support_above_floor``), what lies more
+   than 5 cm below the table top is measured from the room floor beneath it first
+   (``floor.heights_beneath_support``): an object on the room floor seen right beside the
+   table top otherwise belongs to a surface the opening fits in, and reads no relief.
 4. near-side height: the height of the near side of each working pixel (``nearest_depth``:
    the nearest of its block's four cells' mean depths), measured from the same support plane
    as channel 2, / ``height_scale_m``, clipped like it. Present when the dict has
@@ -64,6 +68,7 @@ from task_outcome_ros.floor import (
     LEGACY_FLOOR_FIT,
     FloorTracker,
     height_above_floor,
+    heights_beneath_support,
 )
 from task_outcome_ros.labels import DEFAULT_TABLE
 
@@ -77,6 +82,9 @@ DEFAULT_NORMALISATION: dict[str, Any] = {
     "floor_fit": FLOOR_FIT}
 _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
 NEAREST_HEIGHT = "nearest_height"   # normalisation key of the near-side height (value True)
+# normalisation key (value True): the relief of what lies below a table top measured from
+# the room floor beneath it (floor.heights_beneath_support)
+RELIEF_BENEATH_SUPPORT = "relief_beneath_support"
 RELIEF_WINDOW_RANGE = (3, 63)  # odd working pixels: a window centred on its pixel
 RELIEF_SMOOTHING_RANGE = (3, 15)  # odd working pixels of the relief's mean (local_relief)
 RELIEF_NOISE_SDS_MAX = 10.0  # local noise deviations the relief may be lowered by
@@ -135,6 +143,12 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
                 raise ValueError(f"normalisation {key!r} needs 'relief_window_px', "
                                  f"got {norm!r}")
             out[key] = check(norm[key])
+    if RELIEF_BENEATH_SUPPORT in norm:
+        if (norm[RELIEF_BENEATH_SUPPORT] is not True or "relief_window_px" not in out
+                or "support_above_floor" not in out):
+            raise ValueError(f"normalisation {RELIEF_BENEATH_SUPPORT!r} must be true, with "
+                             f"'relief_window_px' and 'support_above_floor', got {norm!r}")
+        out[RELIEF_BENEATH_SUPPORT] = True
     if "relief_noise_sds" in out and "relief_smoothing_px" not in out:
         raise ValueError(f"normalisation 'relief_noise_sds' needs 'relief_smoothing_px' (the "
                          f"noise is that of the heights' mean), got {norm!r}")
@@ -342,7 +356,9 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
         clip = norm["clip"]
         channels.append((height / norm["height_scale_m"]).clamp(-clip, clip))
         if "relief_window_px" in norm:
-            relief = local_relief(height, has, norm["relief_window_px"],
+            surface_heights = (heights_beneath_support(height, has, norm["support_above_floor"])
+                               if norm.get(RELIEF_BENEATH_SUPPORT) else height)
+            relief = local_relief(surface_heights, has, norm["relief_window_px"],
                                   norm.get("relief_smoothing_px", 1),
                                   norm.get("relief_base_px"),
                                   norm.get("relief_noise_sds", 0.0))

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from task_outcome_ros.floor import heights_beneath_support
 from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
     check_normalisation,
@@ -282,3 +283,64 @@ def test_the_relief_noise_sds_are_stored_checked_and_the_same_on_both_paths() ->
             check_normalisation({**lowered, "relief_noise_sds": bad})
     with pytest.raises(ValueError, match="needs 'relief_smoothing_px'"):
         check_normalisation({**RELIEF_NORMALISATION, "relief_noise_sds": 5})
+
+
+BENEATH_NORMALISATION = {**RELIEF_NORMALISATION, "support_above_floor": [0.7, 0.8],
+                         "relief_beneath_support": True}
+
+
+def _box_on_the_floor_beside_the_table() -> tuple[torch.Tensor, torch.Tensor]:
+    """Heights from a table top (left, 0) beside the room floor 0.75 m below (right), a long
+    16 cm box on the floor lying along the table's edge in the image (longer than the relief's
+    window), and the table's edge as a column of pixels mixing the two (-0.3 m)."""
+    height = torch.zeros(1, 40, 60)
+    height[:, :, 31:] = -0.75
+    height[:, :, 30] = -0.3                # the edge: table side or a mixed pixel
+    height[:, 5:35, 31:35] = -0.75 + 0.16
+    return height, torch.ones_like(height, dtype=torch.bool)
+
+
+def test_beneath_the_table_heights_are_measured_from_the_room_floor() -> None:
+    height, valid = _box_on_the_floor_beside_the_table()
+    beneath = heights_beneath_support(height, valid, (0.7, 0.8))
+    assert beneath[0, 16, 32].item() == pytest.approx(0.16, abs=1e-6)   # the box
+    assert beneath[0, 5, 50].item() == pytest.approx(0.0, abs=1e-6)      # the room floor
+    assert torch.all(beneath[:, :, :30] == 0)                            # the table top
+    assert torch.all(beneath[:, :, 30] == 0)     # its edge: no ridge
+    # No room floor in view (a tote in the middle of a big table): heights as they are.
+    on_table = height.clone()
+    on_table[:, :, 30:] = 0.05
+    assert torch.equal(heights_beneath_support(on_table, valid, (0.7, 0.8)), on_table)
+    # Invalid pixels are not measured, and do not count as floor.
+    invalid_floor = valid.clone()
+    invalid_floor[:, :, 31:] = False
+    assert torch.equal(heights_beneath_support(height, invalid_floor, (0.7, 0.8)), height)
+
+
+def test_a_box_on_the_floor_beside_the_table_reads_relief_only_beneath_the_support() -> None:
+    height, valid = _box_on_the_floor_beside_the_table()
+    # From the table top, the box is part of a surface the opening fits in (a window over the
+    # box, the edge and the table holds no lower point): no relief ...
+    assert local_relief(height, valid, 9)[0, 16, 32].item() == 0.0
+    # ... from the floor beneath it, it reads its own height, and the floor and table none.
+    relief = local_relief(heights_beneath_support(height, valid, (0.7, 0.8)), valid, 9)
+    assert relief[0, 16, 32].item() == pytest.approx(0.16, abs=1e-6)
+    box = torch.zeros_like(valid)
+    box[:, 5:35, 31:35] = True
+    assert relief[~box].abs().max().item() == 0.0
+
+
+def test_the_relief_beneath_the_support_is_stored_checked_and_the_same_on_both_paths():
+    assert input_channels(BENEATH_NORMALISATION) == 4
+    depth = np.full((480, 640), 2.0, np.float32)
+    depth[200:220, 300:320] = 1.9
+    x = preprocess(depth, (160, 120), BENEATH_NORMALISATION)
+    batch = preprocess_batch(torch.from_numpy(depth), (160, 120), BENEATH_NORMALISATION)
+    np.testing.assert_allclose(batch[0].numpy(), x, atol=1e-5)
+    assert check_normalisation(BENEATH_NORMALISATION)["relief_beneath_support"] is True
+    for missing in ("support_above_floor", "relief_window_px"):
+        with pytest.raises(ValueError, match="relief_beneath_support"):
+            check_normalisation({k: v for k, v in BENEATH_NORMALISATION.items()
+                                 if k != missing})
+    with pytest.raises(ValueError, match="must be true"):
+        check_normalisation({**BENEATH_NORMALISATION, "relief_beneath_support": 1})

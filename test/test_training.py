@@ -98,6 +98,11 @@ def test_train_config_validation_names_the_field():
         TrainConfig(relief_window_px=15, relief_noise_sds=5.0).validate()
     with pytest.raises(ConfigError, match="train.relief_noise_sds"):
         TrainConfig(relief_window_px=15, relief_smoothing_px=3, relief_noise_sds=11.0).validate()
+    with pytest.raises(ConfigError, match="relief_beneath_support needs relief_window_px"):
+        TrainConfig(relief_beneath_support=True).validate()
+    with pytest.raises(ConfigError, match="relief_beneath_support = 1: expected true/false"):
+        TrainConfig(relief_window_px=15, relief_beneath_support=1).validate()
+    assert TrainConfig(relief_window_px=15, relief_beneath_support=True).validate()
     assert TrainConfig(relief_window_px=15, relief_smoothing_px=3,
                        relief_noise_sds=5.0).validate().relief_noise_sds == 5.0
     for off in (0, 0.0):
@@ -257,6 +262,32 @@ def test_near_boundary_sample_weights_follow_the_hard_case_tags(small_run, tmp_p
     assert weights.tolist() == [3.0 if "near_boundary" in cases[i].tags else 1.0 for i in indices]
     with pytest.raises(ValueError, match="simulate"):
         near_boundary_sample_weights(tmp_path, indices, 3.0)           # a run without simulate/
+
+
+def test_small_outcome_sample_weights_follow_the_outcomes_pixel_counts() -> None:
+    from training.train import combined_sample_weights, small_outcome_sample_weights
+
+    def image(episode, width, counts):
+        return {"episode": episode, "camera_info": {"width": width, "height": width * 3 // 4},
+                "present": {k: v > 0 for k, v in counts.items()}, "pixel_counts": counts}
+
+    manifest = {"images": [
+        image(0, 640, {"success": 5000, "fell_outside": 300}),   # a small fallen object
+        image(1, 640, {"success": 5000, "fell_outside": 0}),     # absent is not small
+        image(2, 640, {"success": 900, "fell_outside": 0}),      # over 800 px
+        image(3, 320, {"success": 250, "fell_outside": 0}),      # 1,000 px at 640 x 480
+        image(4, 320, {"success": 150, "fell_outside": 0}),      # 600 px at 640 x 480
+    ]}
+    indices = np.array([4, 3, 2, 1, 0])
+    assert small_outcome_sample_weights(manifest, indices, 1.0) is None
+    weights = small_outcome_sample_weights(manifest, indices, 3.0)
+    assert weights.tolist() == [3.0, 1.0, 1.0, 1.0, 3.0]
+    near = np.array([2.5, 1.0, 2.5, 1.0, 1.0])
+    assert combined_sample_weights(near, weights).tolist() == [7.5, 1.0, 2.5, 1.0, 3.0]
+    assert combined_sample_weights(None, weights) is not None
+    assert combined_sample_weights(None, None) is None
+    with pytest.raises(ConfigError, match="train.small_outcome_weight"):
+        TrainConfig(small_outcome_weight=0.5).validate()
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:

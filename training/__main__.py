@@ -156,6 +156,9 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help="sampling weight of training images with an object within 2 cm of "
                         "the task's inside/partly-inside boundary, e.g. a box top near the "
                         "rim (default 2.5; 1 = uniform)")
+    p.add_argument("--small-outcome-weight", type=float, default=None,
+                   help="sampling weight of training images with an outcome present under "
+                        "800 px at 640 x 480, times the near-boundary weight (default 1 = off)")
     p.add_argument("--aug-noise", type=float, default=None,
                    help="re-drawn training noise per image: up to this many times the "
                         "sensor's own (default 1; 0 = off)")
@@ -190,6 +193,11 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help="lower that relief by this many deviations of the smoothed heights' "
                         "noise, measured around each pixel, so a noisy far floor reads as "
                         "flat as a quiet one (needs --relief-smoothing-px; default 0 = off)")
+    p.add_argument("--relief-beneath-support", action=argparse.BooleanOptionalAction,
+                   default=None,
+                   help="measure that relief, below a table top, from the room floor beneath "
+                        "it, so an object on the room floor beside the table reads its height "
+                        "(a task on a table; default off)")
     p.add_argument("--nearest-height", action=argparse.BooleanOptionalAction, default=None,
                    help="add each working pixel's near-side height as an input channel, "
                         "so a thin rim and an object's top edge keep their true height "
@@ -217,6 +225,7 @@ def resolve_train_config(args: argparse.Namespace):
               "base_width": "base_width", "max_minutes": "max_minutes", "device": "device",
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
               "channels_last": "channels_last", "near_boundary_weight": "near_boundary_weight",
+              "small_outcome_weight": "small_outcome_weight",
               "aug_noise": "aug_noise", "aug_holes": "aug_holes",
               "aug_roll_deg": "aug_roll_deg",
               "lovasz_weight": "lovasz_weight",
@@ -225,6 +234,7 @@ def resolve_train_config(args: argparse.Namespace):
               "relief_smoothing_px": "relief_smoothing_px",
               "relief_base_px": "relief_base_px", "relief_noise_sds": "relief_noise_sds",
               "nearest_height": "nearest_height",
+              "relief_beneath_support": "relief_beneath_support",
               "camera_intrinsics": "camera_intrinsics", "space_to_depth": "space_to_depth",
               "full_size_head": "full_size_head"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}

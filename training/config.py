@@ -778,6 +778,11 @@ class TrainConfig:
     # profile of the default task: near-rim mistakes 11 -> 8 (validation) and 34 -> 27 (seed-1
     # set), the others unchanged.
     near_boundary_weight: float = 2.5
+    # Sampling weight of training images with an outcome present under
+    # SMALL_OUTCOME_PIXELS (at 640 x 480; train.small_outcome_sample_weights), multiplying
+    # the near-boundary weight: the tote model missed half its fallen objects under 800 px,
+    # on its own training images as on validation (it underfits them). 1 = off.
+    small_outcome_weight: float = 1.0
     augment: bool = True
     # Re-drawn axial noise per training image: U(0, aug_noise) x the sensor's own noise at the
     # working size (train.SENSOR_NOISE_PER_Z2). Before model 0.1.5 it was ~7x the sensor's.
@@ -817,6 +822,11 @@ class TrainConfig:
     # around each pixel by a median (model.local_noise_sd), so that a noisy far floor reads
     # about as flat as a quiet one; needs relief_smoothing_px; 0 = off.
     relief_noise_sds: float = 0.0
+    # The relief of what lies below the table top measured from the room floor beneath it
+    # (floor.heights_beneath_support): beside the table top an object on the room floor is
+    # part of a surface the opening fits in and reads no relief. Needs relief_window_px and
+    # a task on a table. False = off.
+    relief_beneath_support: bool = False
     # One more input channel, the height of each working pixel's near side
     # (model.nearest_depth): the area resize averages a 1 cm rim, and the top edge of an object
     # leaning on it, with what lies beside them; the nearest of the block's four cells keeps
@@ -865,6 +875,7 @@ class TrainConfig:
         _check_range(o, "max_minutes", self.max_minutes, 0.01, 10_000)
         _check_range(o, "class_weight_power", self.class_weight_power, 0.0, 2.0)
         _check_range(o, "near_boundary_weight", self.near_boundary_weight, 1.0, 100.0)
+        _check_range(o, "small_outcome_weight", self.small_outcome_weight, 1.0, 100.0)
         _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
         _check_range(o, "aug_holes", self.aug_holes, 0.0, 1.0)
         if self.aug_holes and not self.augment:
@@ -909,7 +920,10 @@ class TrainConfig:
         if not (isinstance(self.channels_last, bool) or self.channels_last == "auto"):
             raise ConfigError(f"{o}.channels_last = {self.channels_last!r}: expected true, "
                               "false or \"auto\"")
-        for name in ("camera_intrinsics", "nearest_height"):
+        if self.relief_beneath_support is True and not self.relief_window_px:
+            raise ConfigError(f"{o}.relief_beneath_support needs relief_window_px: it shapes "
+                              "the relief channel")
+        for name in ("camera_intrinsics", "nearest_height", "relief_beneath_support"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{o}.{name} = {getattr(self, name)!r}: expected true/false")
         return self

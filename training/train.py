@@ -46,6 +46,7 @@ from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
     INTRINSICS_FROM_CAMERA_INFO,
     NEAREST_HEIGHT,
+    RELIEF_BENEATH_SUPPORT,
     build_model,
     check_normalisation,
     input_channels,
@@ -495,6 +496,37 @@ def near_boundary_sample_weights(run_dir: Path, indices: np.ndarray, weight: flo
     return np.where(near, weight, 1.0)
 
 
+# An outcome showing fewer pixels than this at 640 x 480 is small (small_outcome_weight): the
+# tote model finds half the fallen objects under it and 0.98 of those above (evaluation.md).
+SMALL_OUTCOME_PIXELS = 800
+
+
+def small_outcome_sample_weights(manifest: dict, indices: np.ndarray, weight: float
+                                 ) -> np.ndarray | None:
+    """Per-image sampling weights: ``weight`` for images with an outcome present that shows
+    fewer than ``SMALL_OUTCOME_PIXELS`` (scaled from 640 x 480 to the image's size), 1 for
+    others; None when ``weight`` is 1."""
+    if weight == 1.0:
+        return None
+    by_index = {im["episode"]: im for im in manifest["images"]}
+    small = np.zeros(len(indices), bool)
+    for k, i in enumerate(indices):
+        im = by_index[int(i)]
+        info = im["camera_info"]
+        limit = SMALL_OUTCOME_PIXELS * info["width"] * info["height"] / REFERENCE_PIXELS
+        small[k] = any(present and im["pixel_counts"][name] < limit
+                       for name, present in im["present"].items())
+    print(f"train: {small.sum()} of {len(small)} training images show an outcome under "
+          f"{SMALL_OUTCOME_PIXELS} px; sampled with weight {weight:g}")
+    return np.where(small, weight, 1.0)
+
+
+def combined_sample_weights(*weights: np.ndarray | None) -> np.ndarray | None:
+    """The product of per-image sampling weights (None: uniform, left out)."""
+    given = [w for w in weights if w is not None]
+    return np.prod(given, axis=0) if given else None
+
+
 # Fields that say how a run is executed, not what it learns: a resume may change them (the
 # activations' memory layout among them). amp is compared by the precision it resolves to
 # ("auto" and "bf16" are the same run on a CPU with native bf16), device through that
@@ -505,8 +537,10 @@ RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp",
 RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
 ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
+                      "small_outcome_weight": 1.0,
                       "relief_window_px": 0, "relief_smoothing_px": 0, "relief_base_px": 0,
-                      "relief_noise_sds": 0.0, "nearest_height": False, "aug_holes": 0.0,
+                      "relief_noise_sds": 0.0, "nearest_height": False,
+                      "relief_beneath_support": False, "aug_holes": 0.0,
                       "aug_roll_deg": 0.0}
 
 
@@ -583,6 +617,11 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
             norm[key] = getattr(cfg, key)
     if cfg.nearest_height:
         norm[NEAREST_HEIGHT] = True
+    if cfg.relief_beneath_support:
+        if "support_above_floor" not in norm:
+            raise ValueError(f"{run_dir}: relief_beneath_support needs a task on a table (its "
+                             "spec's table_size), which this run's spec has not")
+        norm[RELIEF_BENEATH_SUPPORT] = True
     if len(train_arrays["indices"]) == 0:
         raise ValueError(f"{run_dir}: the train split is empty; generate more episodes")
     if cfg.augment and cfg.aug_roll_deg > 0:
@@ -591,8 +630,9 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     val_truth = _truth_present(manifest, val_arrays["indices"], table)
     weights = class_weights(train_arrays["labels"], cfg.class_weight_power,
                             table.num_classes).to(device)
-    sample_weights = near_boundary_sample_weights(run_dir, train_arrays["indices"],
-                                                  cfg.near_boundary_weight)
+    sample_weights = combined_sample_weights(
+        near_boundary_sample_weights(run_dir, train_arrays["indices"], cfg.near_boundary_weight),
+        small_outcome_sample_weights(manifest, train_arrays["indices"], cfg.small_outcome_weight))
 
     model_args = {**cfg.model_args, "in_channels": input_channels(norm),
                   "num_classes": table.num_classes}
