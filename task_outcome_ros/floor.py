@@ -77,9 +77,9 @@ SUPPORT_MARGIN_M = 0.05       # around a table-top band (support_above_floor)
 SUPPORT_MIN_SHARE = 0.10      # of the valid points, for a table top to count as seen
 # heights_beneath_support: points this far below the table top are measured from the room
 # floor (every object a spec drops is under 0.3 m, a table 0.7 m or more); and the room
-# floor's level needs this many points (working pixels) in view.
+# floor's level needs this share of the image's pixels in view.
 BENEATH_SUPPORT_M = 0.05
-BENEATH_MIN_POINTS = 50
+BENEATH_MIN_SHARE = 50 / (160 * 120)   # of the image's pixels: 50 at the 160 x 120 working size
 
 
 def backproject(depth: torch.Tensor, focal_over_width: float = FOCAL_OVER_WIDTH,
@@ -254,20 +254,21 @@ def heights_beneath_support(height: torch.Tensor, valid: torch.Tensor,
     under 5 cm of relief (3 % of those it found). Measured from the floor beneath it, the
     same object stands above the table top beside it, and reads its height like one on the
     table. The room floor's level is each image's median height among the points lower than
-    the spec's lowest table less ``SUPPORT_MARGIN_M``; with fewer than ``BENEATH_MIN_POINTS``
-    of them (no room floor in view), the heights are returned as they are. What lies below
-    the table top but more than half the lowest table height above the floor is the table's
-    own edge (or a pixel mixing it with the floor) and reads 0, as the table top does, so the
-    edge is no ridge. The floor and the table top are taken parallel, as the specs draw them
-    (one tilt for the whole scene)."""
+    the spec's lowest table less ``SUPPORT_MARGIN_M``; with fewer than ``BENEATH_MIN_SHARE``
+    of the image's pixels there (no room floor in view), the heights are returned as they
+    are. What lies below the table top but more than half the lowest table height above the
+    floor is the table's own side (or a pixel mixing it with the floor) and reads 0, as the
+    table top does; lower down, the table's side and legs read like something standing on
+    the floor, up to that half height. The floor and the table top are taken parallel, as the
+    specs draw them (one tilt for the whole scene)."""
     floor_band = valid & (height < -(support_above_floor[0] - SUPPORT_MARGIN_M))
-    counts = floor_band.sum((1, 2))
+    floor_seen = floor_band.sum((1, 2)) >= BENEATH_MIN_SHARE * height.shape[1] * height.shape[2]
     levels = torch.zeros(height.shape[0], dtype=height.dtype, device=height.device)
-    for i in torch.nonzero(counts >= BENEATH_MIN_POINTS).flatten().tolist():
+    for i in torch.nonzero(floor_seen).flatten().tolist():
         levels[i] = height[i][floor_band[i]].median()
-    beneath = valid & (height < -BENEATH_SUPPORT_M) & (levels < 0)[:, None, None]
+    beneath = valid & (height < -BENEATH_SUPPORT_M) & floor_seen[:, None, None]
     above_floor = height - levels[:, None, None]
-    # Higher above the floor than half the lowest table: the table's edge, or a pixel mixing
+    # Higher above the floor than half the lowest table: the table's side, or a pixel mixing
     # it with the floor, not something standing on the floor; read as the table top's own.
     on_floor = above_floor < support_above_floor[0] / 2
     return torch.where(beneath, torch.where(on_floor, above_floor, torch.zeros_like(height)),

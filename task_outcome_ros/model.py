@@ -62,10 +62,12 @@ from torch import nn
 
 from task_outcome_ros.depth import sanitize_depth
 from task_outcome_ros.floor import (
+    BENEATH_SUPPORT_M,
     FLOOR_FIT,
     FLOOR_FITS,
     FOCAL_OVER_WIDTH,
     LEGACY_FLOOR_FIT,
+    SUPPORT_MARGIN_M,
     FloorTracker,
     height_above_floor,
     heights_beneath_support,
@@ -145,9 +147,11 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
             out[key] = check(norm[key])
     if RELIEF_BENEATH_SUPPORT in norm:
         if (norm[RELIEF_BENEATH_SUPPORT] is not True or "relief_window_px" not in out
-                or "support_above_floor" not in out):
+                or "support_above_floor" not in out
+                or out["support_above_floor"][0] <= SUPPORT_MARGIN_M + BENEATH_SUPPORT_M):
             raise ValueError(f"normalisation {RELIEF_BENEATH_SUPPORT!r} must be true, with "
-                             f"'relief_window_px' and 'support_above_floor', got {norm!r}")
+                             f"'relief_window_px' and a 'support_above_floor' over "
+                             f"{SUPPORT_MARGIN_M + BENEATH_SUPPORT_M:g} m, got {norm!r}")
         out[RELIEF_BENEATH_SUPPORT] = True
     if "relief_noise_sds" in out and "relief_smoothing_px" not in out:
         raise ValueError(f"normalisation 'relief_noise_sds' needs 'relief_smoothing_px' (the "

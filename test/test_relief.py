@@ -330,14 +330,45 @@ def test_a_box_on_the_floor_beside_the_table_reads_relief_only_beneath_the_suppo
     assert relief[~box].abs().max().item() == 0.0
 
 
+def test_each_image_of_a_batch_is_measured_from_its_own_room_floor() -> None:
+    height, valid = _box_on_the_floor_beside_the_table()
+    deeper = height.clone()
+    deeper[:, :, 31:] -= 0.05                      # a higher table: its floor 0.80 m below
+    on_table = torch.zeros_like(height)            # no room floor in view
+    on_table[:, 10:13, 40:43] = 0.03
+    batch = torch.cat([height, deeper, on_table])
+    beneath = heights_beneath_support(batch, valid.expand(3, -1, -1), (0.7, 0.8))
+    assert beneath[0, 16, 32].item() == pytest.approx(0.16, abs=1e-6)
+    assert beneath[1, 16, 32].item() == pytest.approx(0.16, abs=1e-6)
+    assert beneath[1, 5, 50].item() == pytest.approx(0.0, abs=1e-6)
+    assert torch.equal(beneath[2], on_table[0])
+
+
+def _camera_over_table_and_floor() -> np.ndarray:
+    """A camera 1 m above a table top looking straight down, the left third of the view the
+    room floor 0.75 m lower, with a long 16 cm box on it along the table's edge, narrower than
+    the relief's window (5 of its 9 working pixels)."""
+    depth = np.full((480, 640), 1.0, np.float32)
+    depth[:, 430:] = 1.75
+    depth[40:440, 432:452] = 1.75 - 0.16
+    return depth
+
+
 def test_the_relief_beneath_the_support_is_stored_checked_and_the_same_on_both_paths():
     assert input_channels(BENEATH_NORMALISATION) == 4
-    depth = np.full((480, 640), 2.0, np.float32)
-    depth[200:220, 300:320] = 1.9
+    depth = _camera_over_table_and_floor()
     x = preprocess(depth, (160, 120), BENEATH_NORMALISATION)
     batch = preprocess_batch(torch.from_numpy(depth), (160, 120), BENEATH_NORMALISATION)
     np.testing.assert_allclose(batch[0].numpy(), x, atol=1e-5)
+    # The box along the table's edge reads its height only measured from the floor beneath.
+    scale = DEFAULT_NORMALISATION["height_scale_m"]
+    assert x[3, 60, 110] * scale == pytest.approx(0.16, abs=0.02)
+    table_only = {k: v for k, v in BENEATH_NORMALISATION.items()
+                  if k != "relief_beneath_support"}
+    assert preprocess(depth, (160, 120), table_only)[3, 60, 110] * scale < 0.02
     assert check_normalisation(BENEATH_NORMALISATION)["relief_beneath_support"] is True
+    with pytest.raises(ValueError, match="relief_beneath_support"):
+        check_normalisation({**BENEATH_NORMALISATION, "support_above_floor": [0.1, 0.8]})
     for missing in ("support_above_floor", "relief_window_px"):
         with pytest.raises(ValueError, match="relief_beneath_support"):
             check_normalisation({k: v for k, v in BENEATH_NORMALISATION.items()

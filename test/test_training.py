@@ -268,7 +268,7 @@ def test_small_outcome_sample_weights_follow_the_outcomes_pixel_counts() -> None
     from training.train import combined_sample_weights, small_outcome_sample_weights
 
     def image(episode, width, counts):
-        return {"episode": episode, "camera_info": {"width": width, "height": width * 3 // 4},
+        return {"episode": episode, "camera": {"width": width, "height": width * 3 // 4},
                 "present": {k: v > 0 for k, v in counts.items()}, "pixel_counts": counts}
 
     manifest = {"images": [
@@ -284,7 +284,7 @@ def test_small_outcome_sample_weights_follow_the_outcomes_pixel_counts() -> None
     assert weights.tolist() == [3.0, 1.0, 1.0, 1.0, 3.0]
     near = np.array([2.5, 1.0, 2.5, 1.0, 1.0])
     assert combined_sample_weights(near, weights).tolist() == [7.5, 1.0, 2.5, 1.0, 3.0]
-    assert combined_sample_weights(None, weights) is not None
+    assert combined_sample_weights(None, weights).tolist() == weights.tolist()
     assert combined_sample_weights(None, None) is None
     with pytest.raises(ConfigError, match="train.small_outcome_weight"):
         TrainConfig(small_outcome_weight=0.5).validate()

@@ -512,8 +512,8 @@ def small_outcome_sample_weights(manifest: dict, indices: np.ndarray, weight: fl
     small = np.zeros(len(indices), bool)
     for k, i in enumerate(indices):
         im = by_index[int(i)]
-        info = im["camera_info"]
-        limit = SMALL_OUTCOME_PIXELS * info["width"] * info["height"] / REFERENCE_PIXELS
+        size = im["camera"]   # the rendered size (camera_info: only with a calibration error)
+        limit = SMALL_OUTCOME_PIXELS * size["width"] * size["height"] / REFERENCE_PIXELS
         small[k] = any(present and im["pixel_counts"][name] < limit
                        for name, present in im["present"].items())
     print(f"train: {small.sum()} of {len(small)} training images show an outcome under "
