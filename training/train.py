@@ -41,6 +41,7 @@ from task_outcome_ros.labels import (
     PRESENCE_MIN_PIXELS,
     REFERENCE_PIXELS,
     LabelTable,
+    scale_pixel_count,
 )
 from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
@@ -513,7 +514,7 @@ def small_outcome_sample_weights(manifest: dict, indices: np.ndarray, weight: fl
     for k, i in enumerate(indices):
         im = by_index[int(i)]
         size = im["camera"]   # the rendered size (camera_info: only with a calibration error)
-        limit = SMALL_OUTCOME_PIXELS * size["width"] * size["height"] / REFERENCE_PIXELS
+        limit = scale_pixel_count(SMALL_OUTCOME_PIXELS, size["height"], size["width"])
         small[k] = any(present and im["pixel_counts"][name] < limit
                        for name, present in im["present"].items())
     print(f"train: {small.sum()} of {len(small)} training images show an outcome under "
@@ -604,6 +605,9 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     manifest = load_manifest(run_dir)
     dataset = dataset_config_from_dict(manifest["config"])
     norm = task_normalisation(dataset)
+    if cfg.relief_beneath_support and "support_above_floor" not in norm:  # before the caches load
+        raise ValueError(f"{run_dir}: relief_beneath_support needs a task on a table (its "
+                         "spec's table_size), which this run's spec has not")
     aug_noise = cfg.aug_noise * sensor_noise_ratio(dataset)
     train_arrays = load_cache(run_dir, "train", cfg.input_size, nearest=cfg.nearest_height)
     val_arrays = load_cache(run_dir, "val", cfg.input_size, nearest=cfg.nearest_height)
@@ -618,9 +622,6 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     if cfg.nearest_height:
         norm[NEAREST_HEIGHT] = True
     if cfg.relief_beneath_support:
-        if "support_above_floor" not in norm:
-            raise ValueError(f"{run_dir}: relief_beneath_support needs a task on a table (its "
-                             "spec's table_size), which this run's spec has not")
         norm[RELIEF_BENEATH_SUPPORT] = True
     if len(train_arrays["indices"]) == 0:
         raise ValueError(f"{run_dir}: the train split is empty; generate more episodes")
