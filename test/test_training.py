@@ -290,6 +290,19 @@ def test_small_outcome_sample_weights_follow_the_outcomes_pixel_counts() -> None
         TrainConfig(small_outcome_weight=0.5).validate()
 
 
+def test_relief_beneath_support_is_refused_on_a_task_without_a_table(small_run, tmp_path):
+    """The default task's container stands on the room floor: no table top to measure beneath.
+    The refusal names the spec's missing table and comes before any cache or weight is made."""
+    from training.train import train
+
+    cfg = TrainConfig(epochs=1, batch_size=4, device="cpu", relief_window_px=15,
+                      relief_beneath_support=True)
+    out = tmp_path / "refused"
+    with pytest.raises(ValueError, match="table_size"):
+        train(small_run, cfg, out=out, progress=False)
+    assert not any(out.glob("*.pt")) and not (out / "history.json").exists()
+
+
 def _cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "training", *args], capture_output=True,
                           text=True, timeout=600)
