@@ -41,6 +41,7 @@ from training.discover import describe_cluster, features, table_of
 from training.fixture import episode_fixture
 from training.geometry import SAMPLE_GRID, geometric_outcome, object_measurements
 from training.render import draw_camera, read_pair, render, render_episode, scene_boxes
+from training.rest_place import ON_SUPPORT, PLACES, episode_places
 from training.scene import load_scene
 from training.seeding import episode_rng
 
@@ -154,6 +155,13 @@ def test_the_tote_spec_is_deterministic_and_labels_its_own_scene(tmp_path):
         assert set(np.unique(labels).tolist()) <= allowed, (im["episode"], names)
         assert im["present"] == outcomes_present(labels, table=table)
     assert shapes <= {"box", "cylinder"}
+    # The evaluation's places: every episode's outcomes get one; a success lies in the tote,
+    # so on the table, and whatever lies beneath it is no success.
+    places = episode_places(runs[1], set(range(len(episodes))))
+    assert set(places) == set(range(len(episodes)))
+    for e, names in enumerate(outcomes):
+        assert set(places[e]) == set(names) and set(places[e].values()) <= set(PLACES)
+        assert places[e].get("success", ON_SUPPORT) == ON_SUPPORT
 
 
 def test_the_shelf_spec_runs_end_to_end_with_its_own_label_table(tmp_path):

@@ -9,6 +9,7 @@ import pytest
 from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS, absorb_fragments, fragment_threshold
 from task_outcome_ros.labels import DEFAULT_TABLE, FIXTURE
 from training.evaluate import hard_case_report
+from training.fixture import Table
 from training.hard_cases import (
     NEAR_BOUNDARY_M,
     HardCase,
@@ -16,6 +17,14 @@ from training.hard_cases import (
     gap_bin_names,
     object_gap,
     object_tags,
+)
+from training.rest_place import (
+    BENEATH_SUPPORT,
+    BOTH,
+    ON_SUPPORT,
+    object_place,
+    place_of,
+    recall_by_place,
 )
 from training.size_recall import SIZE_BINS_PX, recall_by_size, size_bin, size_bin_names
 
@@ -154,3 +163,26 @@ def test_recall_by_size_counts_found_outcomes_per_bin():
     # An invented outcome (truly absent) is not a recall event.
     assert sum(e["images"] for e in report["by_outcome"]["ok"]) == 0
     assert report["size_bins_px"] == list(SIZE_BINS_PX)
+
+
+def test_places_split_at_half_the_tables_height_and_recall_is_counted_per_place():
+    table = Table(0.9, 0.7, 0.1, -0.05, top_z=0.75, floor_z=0.0)
+    assert [object_place((0.0, 0.0, z), table) for z in (0.78, 0.38, 0.37, 0.03)] \
+        == [ON_SUPPORT, ON_SUPPORT, BENEATH_SUPPORT, BENEATH_SUPPORT]
+    assert place_of({ON_SUPPORT}) == ON_SUPPORT and place_of({ON_SUPPORT, BENEATH_SUPPORT}) == BOTH
+
+    def row(episode, truth_px, found):
+        return {"episode": episode, "truth": {"fell": truth_px >= 50},
+                "pred": {"fell": found}, "truth_pixels": {"fell": truth_px}}
+    rows = [row(0, 300, False), row(1, 300, True), row(2, 300, True), row(3, 5000, True),
+            row(4, 0, True)]
+    places = {0: {"fell": BENEATH_SUPPORT}, 1: {"fell": BENEATH_SUPPORT}, 2: {"fell": ON_SUPPORT},
+              3: {"fell": BOTH}, 4: {"fell": BENEATH_SUPPORT, "ok": ON_SUPPORT}}
+    report = recall_by_place(rows, places, ["fell"], 480, 640)["recall_by_place"]
+    fell = report["by_outcome"]["fell"]
+    found = {place: (sum(e["found"] for e in bins), sum(e["images"] for e in bins))
+             for place, bins in fell.items()}
+    # Episode 4's fallen object is absent from its truth: no recall event anywhere.
+    assert found == {ON_SUPPORT: (1, 1), BENEATH_SUPPORT: (1, 2), BOTH: (1, 1)}
+    assert {e["bin"]: e["images"] for e in fell[BENEATH_SUPPORT]}["200-400"] == 2
+    assert recall_by_place(rows, None, ["fell"], 480, 640) == {}

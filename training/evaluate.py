@@ -3,7 +3,8 @@
 Every image goes through ``OutcomeSegmenter.segment`` at full resolution (the node's code
 path), and the presence rule of labels.py decides which outcomes are present in the predicted
 and in the true label image. Writes ``eval.json`` (docs/interface.md §6), a confusion matrix, a
-picture of examples, mistakes first, and the recall by outcome size (size_recall.py).
+picture of examples, mistakes first, the recall by outcome size (size_recall.py) and, for a
+task on a table, by where the outcome's objects rest (rest_place.py).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from training.hard_cases import (
     gap_bin_names,
 )
 from training.render import read_pair, reported_camera
+from training.rest_place import episode_places, recall_by_place
 from training.size_recall import plot_recall_by_size, recall_by_size
 from training.stats import wilson_interval
 
@@ -156,6 +158,8 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         "mistakes": [r["episode"] for r in rows if not r["correct"]],
         "recall_by_size": recall_by_size(rows, table.outcome_names, h, w),
         **hard_case_report(rows, episode_hard_cases(data_dir, {r["episode"] for r in rows})),
+        **recall_by_place(rows, episode_places(data_dir, {r["episode"] for r in rows}),
+                          table.outcome_names, h, w),
     }
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
