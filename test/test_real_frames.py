@@ -12,6 +12,7 @@ from training.__main__ import main as training_main
 from training.config import ConfigError
 from training.real import (
     check_model,
+    invented_pixels,
     load_frame_set,
     read_depth,
     wrong_outcome_counts,
@@ -73,7 +74,10 @@ def test_real_frames_cli_writes_its_report_and_contact_sheet(tmp_path, capsys):
     measured, _, _ = check_model("tote", load_frame_set("arc2017"))
     assert report == json.loads(json.dumps(measured))
     assert (tmp_path / "real_frames.png").stat().st_size > 10_000
-    assert "real-frames: 6 frames of arc2017" in capsys.readouterr().out
+    assert report["invented_pixels"] == sum(invented_pixels(r) for r in report["rows"])
+    printed = capsys.readouterr().out
+    assert "real-frames: 6 frames of arc2017" in printed
+    assert f"{report['invented_pixels']} px of outcomes the frames do not hold" in printed
 
 
 def _write_set(folder, frames_yaml: str, depth: bool = True):
@@ -122,6 +126,14 @@ def test_wrong_outcomes_are_counted_per_outcome_over_frames():
     assert wrong_outcomes(rows[0]) == (["fell_outside"], [])
     assert wrong_outcome_counts(rows) == {"fell_outside": {"invented": 2, "missed": 0},
                                           "success": {"invented": 0, "missed": 1}}
+
+
+@pytest.mark.unit
+def test_invented_pixels_count_specks_below_the_presence_rule_but_not_the_truth():
+    row = {"truth": ["success"], "predicted": ["success"],
+           "pixel_counts": {"success": 9000, "fell_outside": 30, "stuck_on_rim": 200}}
+    assert invented_pixels(row) == 230      # a 30 px speck is not present, but it is invented
+    assert invented_pixels({"truth": [], "pixel_counts": {"success": 0}}) == 0
 
 
 @pytest.mark.unit

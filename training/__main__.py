@@ -441,7 +441,9 @@ def cmd_real_frames(args) -> None:
                         f", wrong (invented {invented or '-'}, missed {missed or '-'})")
         print(f"real-frames {row['frame']}: {', '.join(row['predicted']) or 'nothing'} "
               f"({verdict})")
-    score = (f"image all-correct {report['image_all_correct']:.3f}, " if report["scored"]
+    score = (f"image all-correct {report['image_all_correct']:.3f}, "
+             f"{report['invented_pixels']} px of outcomes the frames do not hold, "
+             if report["scored"]
              else f"not scored (a {report['model_task']} model on {report['frame_set_task']} "
                   f"frames), ")
     print(f"real-frames: {report['frames']} frames of {report['frame_set']}, {score}"

@@ -154,6 +154,7 @@ def check_model(model: str | Path | None, frame_set: FrameSet) -> tuple[dict, li
                "pixel_counts": result.pixel_counts}
         if scored:
             row["correct"] = predicted == sorted(frame.present)
+            row["invented_pixels"] = invented_pixels(row)
         rows.append(row)
         images.append((depth, result.labels))
     inside = [r for r in rows if not r["outside_envelope"]]
@@ -164,6 +165,7 @@ def check_model(model: str | Path | None, frame_set: FrameSet) -> tuple[dict, li
     if scored:
         report["image_all_correct"] = round(sum(r["correct"] for r in rows) / len(rows), 3)
         report["wrong_outcomes"] = wrong_outcome_counts(rows)
+        report["invented_pixels"] = sum(r["invented_pixels"] for r in rows)
     return report, images, seg.table
 
 
@@ -171,6 +173,13 @@ def wrong_outcomes(row: dict) -> tuple[list[str], list[str]]:
     """(outcomes invented, outcomes missed) of one scored frame."""
     truth, pred = set(row["truth"]), set(row["predicted"])
     return sorted(pred - truth), sorted(truth - pred)
+
+
+def invented_pixels(row: dict) -> int:
+    """Pixels of a scored frame labelled with an outcome its truth does not hold, whether or
+    not there are enough of them to call it present: a model's specks, which decide a real
+    frame on one bad day, counted before the presence rule hides them."""
+    return int(sum(n for name, n in row["pixel_counts"].items() if name not in row["truth"]))
 
 
 def wrong_outcome_counts(rows: list[dict]) -> dict[str, dict[str, int]]:
