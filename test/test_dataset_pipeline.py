@@ -38,10 +38,12 @@ from training.config import (
 )
 from training.dataset import manifest_table, split_episodes
 from training.discover import describe_cluster, features, table_of
+from training.evaluate import evaluate
 from training.fixture import episode_fixture
 from training.geometry import SAMPLE_GRID, geometric_outcome, object_measurements
+from training.hard_cases import run_episodes
 from training.render import draw_camera, read_pair, render, render_episode, scene_boxes
-from training.rest_place import ON_SUPPORT, PLACES, episode_places
+from training.rest_place import BENEATH_SUPPORT, BOTH, ON_SUPPORT, places_of
 from training.scene import load_scene
 from training.seeding import episode_rng
 
@@ -155,13 +157,35 @@ def test_the_tote_spec_is_deterministic_and_labels_its_own_scene(tmp_path):
         assert set(np.unique(labels).tolist()) <= allowed, (im["episode"], names)
         assert im["present"] == outcomes_present(labels, table=table)
     assert shapes <= {"box", "cylinder"}
-    # The evaluation's places: every episode's outcomes get one; a success lies in the tote,
-    # so on the table, and whatever lies beneath it is no success.
-    places = episode_places(runs[1], set(range(len(episodes))))
+    _assert_places_follow_the_final_heights(runs[1], cfg, episodes, outcomes)
+
+
+def _assert_places_follow_the_final_heights(run_dir, cfg, episodes, outcomes):
+    """The evaluation's places on a real tote run: an outcome with an object lying on the room
+    floor (within 0.3 m of it; tables are 0.7-0.8 m high) rests beneath the support or both,
+    one with an object near the table top on it or both; a success, in the tote, on it.
+    Then `evaluate` reports recall by place for every present outcome."""
+    run = run_episodes(run_dir, set(range(len(episodes))))
+    places = places_of(run, run_dir)
     assert set(places) == set(range(len(episodes)))
-    for e, names in enumerate(outcomes):
-        assert set(places[e]) == set(names) and set(places[e].values()) <= set(PLACES)
-        assert places[e].get("success", ON_SUPPORT) == ON_SUPPORT
+    on_floor = 0
+    for episode, names in zip(episodes, outcomes):
+        table = episode_fixture(episode, cfg.scene).table
+        found = places[episode["episode"]]
+        assert set(found) == set(names) and found.get("success", ON_SUPPORT) == ON_SUPPORT
+        for obj, name in zip(episode["objects"], names):
+            z = obj["position"][2]
+            if z < table.floor_z + 0.3:
+                on_floor += 1
+                assert found[name] in (BENEATH_SUPPORT, BOTH), (episode["episode"], name)
+            elif z > table.top_z - 0.1:
+                assert found[name] in (ON_SUPPORT, BOTH), (episode["episode"], name)
+    assert on_floor > 0, "the seed must put a fallen object on the room floor"
+    report = evaluate("tote", run_dir, "all", run_dir / "eval", progress=False)
+    truth = [im["present"] for im in load_json(run_dir / "manifest.json")["images"]]
+    for name, by_place in report["recall_by_place"]["by_outcome"].items():
+        counted = sum(e["images"] for bins in by_place.values() for e in bins)
+        assert counted == sum(p.get(name, False) for p in truth), name  # each present once
 
 
 def test_the_shelf_spec_runs_end_to_end_with_its_own_label_table(tmp_path):

@@ -290,11 +290,16 @@ def test_small_outcome_sample_weights_follow_the_outcomes_pixel_counts() -> None
         TrainConfig(small_outcome_weight=0.5).validate()
 
 
-def test_relief_beneath_support_is_refused_on_a_task_without_a_table(small_run, tmp_path):
+def test_relief_beneath_support_is_refused_on_a_task_without_a_table(small_run, tmp_path,
+                                                                    monkeypatch):
     """The default task's container stands on the room floor: no table top to measure beneath.
     The refusal names the spec's missing table and comes before any cache or weight is made."""
     from training.train import train
 
+    def no_cache(*args, **kwargs):
+        raise AssertionError("the cache was loaded before the refusal")
+
+    monkeypatch.setattr("training.train.load_cache", no_cache)
     cfg = TrainConfig(epochs=1, batch_size=4, device="cpu", relief_window_px=15,
                       relief_beneath_support=True)
     out = tmp_path / "refused"
@@ -356,6 +361,7 @@ def test_evaluation_of_a_known_model_gives_the_scores_the_truth_implies(small_ru
     only_success = sum(p == {"success": True, "fell_outside": False, "stuck_on_rim": False}
                        for p in truth)
     assert report["image_all_correct"] == pytest.approx(only_success / len(truth))
+    assert "recall_by_place" not in report   # the default container stands on no table
 
 
 def test_short_real_training_improves_the_loss_and_evaluates(small_run):

@@ -284,7 +284,7 @@ def ship(best: Path) -> Path:
 
 def cmd_evaluate(args) -> None:
     from training.evaluate import evaluate
-    from training.rest_place import ON_SUPPORT
+    from training.size_recall import SMALL_OUTCOME_PIXELS, found_in
 
     model = args.checkpoint or Path(args.out) / "train" / "best.pt"
     data = args.data or Path(args.out)
@@ -311,14 +311,12 @@ def cmd_evaluate(args) -> None:
     for outcome, bins in report["recall_by_size"]["by_outcome"].items():
         print(f"  {outcome} found by size (px at 640 x 480): " + ", ".join(
             f"{e['bin']} {e['found']}/{e['images']}" for e in bins if e["images"]))
-    by_place = report.get("recall_by_place", {}).get("by_outcome", {})
-    for outcome, places in by_place.items():
-        if sum(e["images"] for e in places[ON_SUPPORT]) == sum(
-                e["images"] for bins in places.values() for e in bins):
-            continue  # all on the support (a success): the size line says it all
-        print(f"  {outcome} found by where it rests: " + "; ".join(
-            f"{place} {sum(e['found'] for e in bins)}/{sum(e['images'] for e in bins)}"
-            for place, bins in places.items()))
+    for outcome, places in report.get("recall_by_place", {}).get("by_outcome", {}).items():
+        if sum(any(e["images"] for e in bins) for bins in places.values()) > 1:
+            print(f"  {outcome} found by where it rests (under {SMALL_OUTCOME_PIXELS} px): "
+                  + "; ".join("{} {}/{} ({}/{})".format(
+                      place, *found_in(bins), *found_in(bins, SMALL_OUTCOME_PIXELS))
+                      for place, bins in places.items()))
 
 
 def add_robustness_args(p: argparse.ArgumentParser) -> None:

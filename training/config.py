@@ -779,9 +779,9 @@ class TrainConfig:
     # set), the others unchanged.
     near_boundary_weight: float = 2.5
     # Sampling weight of training images with an outcome present under
-    # SMALL_OUTCOME_PIXELS (at 640 x 480; train.small_outcome_sample_weights), multiplying
-    # the near-boundary weight: the tote model missed half its fallen objects under 800 px,
-    # on its own training images as on validation (it underfits them). 1 = off.
+    # size_recall.SMALL_OUTCOME_PIXELS (at 640 x 480; train.small_outcome_sample_weights),
+    # multiplying the near-boundary weight: the tote model missed half its fallen objects
+    # under 800 px, on its own training images as on validation (it underfits them). 1 = off.
     small_outcome_weight: float = 1.0
     augment: bool = True
     # Re-drawn axial noise per training image: U(0, aug_noise) x the sensor's own noise at the

@@ -33,12 +33,13 @@ from training.hard_cases import (
     NEAR_BOUNDARY_M,
     TAGS,
     HardCase,
-    episode_hard_cases,
     gap_bin,
     gap_bin_names,
+    hard_cases_of,
+    run_episodes,
 )
 from training.render import read_pair, reported_camera
-from training.rest_place import episode_places, recall_by_place
+from training.rest_place import places_of, recall_by_place
 from training.size_recall import plot_recall_by_size, recall_by_size
 from training.stats import wilson_interval
 
@@ -134,6 +135,7 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
     truth_arr, pred_arr = np.array(truth_p, bool), np.array(pred_p, bool)
     iou = np.diag(conf) / np.maximum(1, conf.sum(0) + conf.sum(1) - np.diag(conf))
     h, w = depth.shape
+    episodes = run_episodes(data_dir, {r["episode"] for r in rows})  # for both breakdowns
     report = {
         "n_images": len(images),
         "split": split,
@@ -157,9 +159,8 @@ def evaluate(model_path: Path | None, data_dir: Path, split: str, out_dir: Path,
         "confusion": conf.tolist(),
         "mistakes": [r["episode"] for r in rows if not r["correct"]],
         "recall_by_size": recall_by_size(rows, table.outcome_names, h, w),
-        **hard_case_report(rows, episode_hard_cases(data_dir, {r["episode"] for r in rows})),
-        **recall_by_place(rows, episode_places(data_dir, {r["episode"] for r in rows}),
-                          table.outcome_names, h, w),
+        **hard_case_report(rows, hard_cases_of(episodes)),
+        **recall_by_place(rows, places_of(episodes, data_dir), table.outcome_names, h, w),
     }
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

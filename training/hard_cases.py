@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from training.chunks import load_chunks
-from training.config import dataset_config_from_dict, load_json
+from training.config import DatasetConfig, dataset_config_from_dict, load_json
 from training.geometry import object_measurements
 
 NEAR_BOUNDARY_M = 0.02
@@ -85,30 +85,50 @@ def gap_bin_names() -> list[str]:
     return [f"{a}-{b} mm" for a, b in zip(edges, edges[1:])] + [f">= {edges[-1]} mm"]
 
 
-def episode_hard_cases(data_dir: Path, wanted: set[int]) -> dict[int, HardCase] | None:
-    """Episode -> HardCase for the ``wanted`` episodes of the dataset run in ``data_dir``;
-    None when the run has no simulation results to read (then there is no breakdown)."""
+@dataclass(frozen=True)
+class RunEpisodes:
+    """The simulated final states of some of a dataset run's episodes, with the run's config:
+    what the evaluation's breakdowns read (hard cases here, places in rest_place.py)."""
+
+    cfg: DatasetConfig
+    episodes: list[dict]
+
+
+def run_episodes(data_dir: Path, wanted: set[int]) -> RunEpisodes | None:
+    """The ``wanted`` episodes of the dataset run in ``data_dir``; None when the run has no
+    simulation results to read (then there is no breakdown)."""
     data_dir = Path(data_dir)
     manifest_path = data_dir / "manifest.json"
     if not (data_dir / "simulate").is_dir() or not manifest_path.is_file():
         return None
     cfg = dataset_config_from_dict(load_json(manifest_path)["config"])
-    scene, rule = cfg.scene, cfg.discover.yardstick_inside
     try:
         episodes = load_chunks(data_dir / "simulate", cfg.episodes, cfg.chunk_size)
     except (FileNotFoundError, ValueError):
         return None
+    return RunEpisodes(cfg, [e for e in episodes if int(e["episode"]) in wanted])
+
+
+def hard_cases_of(run: RunEpisodes | None) -> dict[int, HardCase] | None:
+    """Episode -> HardCase for the episodes of ``run`` (None: no breakdown)."""
+    if run is None:
+        return None
+    scene, rule = run.cfg.scene, run.cfg.discover.yardstick_inside
     cases = {}
-    for episode in episodes:
-        if int(episode["episode"]) not in wanted:
-            continue
-        found: set[str] = set()
+    for episode in run.episodes:
+        tags: set[str] = set()
         gaps = []
         for obj in episode["objects"]:
             m = object_measurements(obj, episode, scene)
-            found |= object_tags(m, rule)
+            tags |= object_tags(m, rule)
             if (gap := object_gap(m, rule)) is not None:
                 gaps.append(gap)
-        cases[int(episode["episode"])] = HardCase(tuple(sorted(found)),
+        cases[int(episode["episode"])] = HardCase(tuple(sorted(tags)),
                                                   min(gaps) if gaps else None)
     return cases
+
+
+def episode_hard_cases(data_dir: Path, wanted: set[int]) -> dict[int, HardCase] | None:
+    """Episode -> HardCase for the ``wanted`` episodes of the dataset run in ``data_dir``;
+    None when the run has no simulation results to read (then there is no breakdown)."""
+    return hard_cases_of(run_episodes(data_dir, wanted))

@@ -17,8 +17,13 @@ from pathlib import Path
 
 from task_outcome_ros.labels import scale_pixel_count
 
+# An outcome showing fewer pixels than this at 640 x 480 is small: the tote model finds half
+# the fallen objects under it and 0.98 of those above (docs/evaluation.md). Training can draw
+# images with one more often (train.small_outcome_sample_weights); the evaluation's command
+# line reports them apart. It is one of the bins' edges below.
+SMALL_OUTCOME_PIXELS = 800
 # Lower edges of the bins, in pixels at 640 x 480; the last bin is open above.
-SIZE_BINS_PX = (50, 100, 200, 400, 800, 1600)
+SIZE_BINS_PX = (50, 100, 200, 400, SMALL_OUTCOME_PIXELS, 1600)
 
 
 def size_bin_names() -> list[str]:
@@ -32,6 +37,13 @@ def size_bin(pixels: int, height: int, width: int) -> int | None:
     edges = [scale_pixel_count(p, height, width) for p in SIZE_BINS_PX]
     found = [i for i, lo in enumerate(edges) if pixels >= lo]
     return found[-1] if found else None
+
+
+def found_in(bins: list[dict], below_px: int | None = None) -> tuple[int, int]:
+    """(found, images) summed over a ``recall_by_size`` outcome's bins, or over those of
+    outcomes under ``below_px`` pixels at 640 x 480 (an edge of the bins)."""
+    kept = [e for lo, e in zip(SIZE_BINS_PX, bins) if below_px is None or lo < below_px]
+    return sum(e["found"] for e in kept), sum(e["images"] for e in kept)
 
 
 def recall_by_size(rows: list[dict], outcome_names: list[str], height: int, width: int

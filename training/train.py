@@ -72,6 +72,7 @@ from training.losses import (
     outcome_lovasz_loss,
 )
 from training.roll import draw_roll, measure_images, roll_images
+from training.size_recall import SMALL_OUTCOME_PIXELS
 
 WARMUP_FRACTION = 0.03
 # The sensor's axial noise per 640 x 480 pixel, as sd / z^2 (robust sd of noisy - clean depth
@@ -495,11 +496,6 @@ def near_boundary_sample_weights(run_dir: Path, indices: np.ndarray, weight: flo
     print(f"train: {near.sum()} of {len(near)} training images are near the boundary; "
           f"sampled with weight {weight:g}")
     return np.where(near, weight, 1.0)
-
-
-# An outcome showing fewer pixels than this at 640 x 480 is small (small_outcome_weight): the
-# tote model finds half the fallen objects under it and 0.98 of those above (evaluation.md).
-SMALL_OUTCOME_PIXELS = 800
 
 
 def small_outcome_sample_weights(manifest: dict, indices: np.ndarray, weight: float
