@@ -93,6 +93,13 @@ RELIEF_NOISE_SDS_MAX = 10.0  # local noise deviations the relief may be lowered 
 NOISE_STEP_M = 0.001  # local_noise_sd's median works on |residuals| in these steps ...
 NOISE_STEPS = 255     # ... up to this many (uint8, so OpenCV's median takes any window)
 _FLOOR_FITS = FLOOR_FITS
+# Every key a normalisation may carry. An unknown one is refused: it would be an input this
+# code does not build (a checkpoint from a newer version), and the network would run blind.
+NORMALISATION_KEYS = frozenset({
+    "mode", "offset_m", "scale_m", "clip", "invalid_value", "height_scale_m",
+    "focal_over_width", "floor_fit", "intrinsics", "support_above_floor", "relief_window_px",
+    "relief_smoothing_px", "relief_base_px", "relief_noise_sds", RELIEF_BENEATH_SUPPORT,
+    NEAREST_HEIGHT})
 # normalisation["intrinsics"]: where the height channel's camera comes from in training.
 INTRINSICS_FROM_CAMERA_INFO = "camera_info"
 DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution
@@ -107,6 +114,10 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
     """Validate a normalisation dict (from code or a checkpoint); returns it as plain floats."""
     if not isinstance(norm, dict) or norm.get("mode") != "fixed":
         raise ValueError(f"normalisation must be a dict with mode 'fixed', got {norm!r}")
+    unknown = sorted(set(norm) - NORMALISATION_KEYS)
+    if unknown:
+        raise ValueError(f"normalisation has fields this version does not know: {unknown} "
+                         f"(a checkpoint from a newer task_outcome_ros?), got {norm!r}")
     try:
         out = {"mode": "fixed", **{k: float(norm[k]) for k in
                                    ("offset_m", "scale_m", "clip", "invalid_value")}}

@@ -14,7 +14,12 @@ from test_floor import TWO_CHANNEL_NORMALISATION, _container_floor_scene
 from task_outcome_ros import checkpoint
 from task_outcome_ros.checkpoint import CheckpointError
 from task_outcome_ros.labels import DEFAULT_TABLE, LEGACY_DEFAULT_IDS
-from task_outcome_ros.model import DEFAULT_NORMALISATION, IN_CHANNELS, OutcomeFCN
+from task_outcome_ros.model import (
+    DEFAULT_NORMALISATION,
+    IN_CHANNELS,
+    NORMALISATION_KEYS,
+    OutcomeFCN,
+)
 
 pytestmark = pytest.mark.unit
 
@@ -262,3 +267,14 @@ def test_checkpoint_keeps_the_floor_fit_it_was_trained_on(tmp_path: Path) -> Non
         segmenter = OutcomeSegmenter(path, backend="torch")
         floor_height = np.median(segmenter.prepare(depth)[2][outer]) * scale
         assert (abs(floor_height) > 0.003) == off_m
+
+
+def test_normalisation_field_this_version_does_not_know_is_refused(tmp_path: Path) -> None:
+    """A checkpoint whose inputs include one this code cannot build (a newer version's
+    channel) is refused by name, not run with that channel missing."""
+    path = tmp_path / "m.pt"
+    _save(path)
+    _rewrite(path, normalisation={**DEFAULT_NORMALISATION, "edge_channel_px": 3})
+    _assert_error(path, "does not know", "edge_channel_px")
+    _save(path)
+    assert checkpoint.load(path).normalisation.keys() <= NORMALISATION_KEYS
