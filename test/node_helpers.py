@@ -152,6 +152,7 @@ class Reply:
         self.status: DiagnosticArray | None = None
         self.overlay: Image | None = None
         self.markers: MarkerArray | None = None
+        self.status_arrived: float | None = None  # time.monotonic() when the status came
 
 
 class OutcomeClient:
@@ -197,6 +198,8 @@ class OutcomeClient:
             reply = self.replies.setdefault(header_key(header), Reply())
             if getattr(reply, field) is None:  # keep the first answer to a header
                 setattr(reply, field, msg)
+                if field == "status":
+                    reply.status_arrived = time.monotonic()
         return callback
 
     def next_stamp(self) -> tuple[int, int]:

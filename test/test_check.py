@@ -109,7 +109,9 @@ def test_no_frame_in_time_is_a_reply_saying_so_and_the_node_keeps_working(node):
     elapsed = time.monotonic() - started
     assert not result.success and result.reason == f"no frame within {TIMEOUT_S:g} s"
     assert result.stamp_ns is None
-    assert TIMEOUT_S * 0.9 <= elapsed < TIMEOUT_S + 2.0
+    # Not before its timeout; the bound above is _wait's (a node that never gave up fails it),
+    # not a wall-clock figure a shared machine can break.
+    assert elapsed >= TIMEOUT_S * 0.9
 
 
 def test_the_reply_is_the_documented_json(node):

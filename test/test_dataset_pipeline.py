@@ -500,7 +500,13 @@ def test_noisy_labels_ignore_exactly_the_invalid_depth(shots):
         # Noise moves edges by a pixel or so; it does not relabel the scene.
         valid = labels != IGNORE
         assert (labels[valid] == shot["labels"][valid]).mean() > 0.97
-        assert noisy["record"]["present"] == outcomes_present(labels)
+        # The record's presence is that of the noisy labels, counted here by hand: 50 px of
+        # an outcome at 640 x 480 (the paper's rule), scaled to this image's area.
+        need = 50 * labels.size / (640 * 480)
+        by_hand = {name: int(np.count_nonzero(labels == i)) >= round(need)
+                   for name, i in DEFAULT_TABLE.outcome_ids.items()}
+        assert noisy["record"]["present"] == by_hand
+        assert any(by_hand.values())  # the shots hold outcomes: the check compares something
 
 
 # ---- the manifest and the stored images -----------------------------------------------------

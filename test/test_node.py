@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import random
+import re
 import subprocess
 import sys
 import time
@@ -156,7 +157,8 @@ def check_reply(request, reply, table: L.LabelTable = L.DEFAULT_TABLE) -> np.nda
                                               "envelope")
     assert status.level == (DiagnosticStatus.WARN if failure or outside
                             else DiagnosticStatus.OK)
-    assert float(values["inference_ms"]) >= 0 and float(values["latency_ms"]) >= 0
+    # latency runs from the frame's arrival to its status, so it holds the inference
+    assert 0 <= float(values["inference_ms"]) <= float(values["latency_ms"])
     assert int(values["dropped_frames"]) >= 0
     # reuse_floor_fit (default true): every frame with depth says what its plane was.
     assert values.get("support_plane", "fitted") in ("kept", "fitted")
@@ -344,7 +346,10 @@ def test_bad_frame_gives_error_status_and_node_goes_on(session, name):
     # Outputs are in order per topic: had the bad frame produced labels, they came first.
     assert client.replies[nh.header_key(bad.header)].labels is None
     assert proc.alive()
-    assert "skipping depth frame" in proc.log()
+    # The warning is throttled (WARN_THROTTLE_S) and the node serves every case of this test,
+    # so the log shows the first bad frame's skip; each frame's own evidence is its ERROR status.
+    assert re.search(r"skipping depth frame \(frame_id 'bad_\w+'\): bad depth image",
+                     proc.log()), proc.log()
 
 
 def _request_until(client, make_msg, predicate, timeout: float = 15.0):
@@ -520,9 +525,10 @@ def test_package_imports_without_rclpy():
     assert result.stdout.startswith("ok")
 
 
-def test_overlay_is_made_only_while_someone_listens_and_again_when_they_return(session):
+def test_overlay_listener_leaving_and_returning_keeps_the_outputs_coming(session):
     """Nobody on outcome/overlay: labels and status still come; a subscriber that joins
-    later gets overlays again (the node checks for listeners per frame)."""
+    later gets overlays again (the node checks for listeners per frame). That the overlay is
+    then not made cannot be seen from outside the node: nobody is there to receive it."""
     client, proc = session
     overlay_sub = client.subs[2]
     client.node.destroy_subscription(overlay_sub)
@@ -532,8 +538,7 @@ def test_overlay_is_made_only_while_someone_listens_and_again_when_they_return(s
         client.spin_until(lambda: False, 0.5)  # the node's side of discovery catches up
         msg = nh.depth_msg(scene(), stamp=client.next_stamp())
         reply = client.request(msg, ("status", "labels"))
-        check_reply(msg, reply)
-        assert reply.overlay is None
+        check_reply(msg, reply)  # labels and status come without an overlay listener
     finally:
         client.subs[2] = client.node.create_subscription(
             Image, "outcome/overlay", client._store("overlay"), nh.RELIABLE)

@@ -16,6 +16,8 @@ from training.config import ConfigError, TrainConfig
 from training.render import Camera, SceneBox, look_at, render
 from training.roll import depth_edges, pixel_noise, principal_points, roll_images, roll_sources
 
+pytestmark = pytest.mark.unit
+
 
 def rendered(roll_deg: float) -> tuple[np.ndarray, np.ndarray, Camera]:
     """Clean depth and labels of a box on a floor, from a camera 2 m away looking down at 45°

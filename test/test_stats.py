@@ -26,7 +26,7 @@ def test_wilson_interval_matches_the_textbook_values_and_stays_inside_0_1():
     assert wilson_interval(97, 100) == pytest.approx((0.915, 0.990), abs=1e-3)
     assert wilson_interval(291, 300) == pytest.approx((0.944, 0.984), abs=1e-3)
     for bad in ((5, 0), (-1, 10), (11, 10)):
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match="need 0 <= right <= n"):  # not sqrt's domain
             wilson_interval(*bad)
 
 
@@ -38,7 +38,7 @@ def test_exact_mcnemar_counts_only_the_discordant_images():
     assert exact_mcnemar_p(4, 1) == exact_mcnemar_p(1, 4)
     # 0 vs 10 is significant, 2 vs 8 is not at 5 %.
     assert exact_mcnemar_p(0, 10) < 0.01 and exact_mcnemar_p(2, 8) > 0.05
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="counts must be >= 0"):
         exact_mcnemar_p(-1, 2)
 
 
