@@ -82,6 +82,7 @@ DEFAULT_NORMALISATION: dict[str, Any] = {
     "mode": "fixed", "offset_m": 2.0, "scale_m": 1.0, "clip": 4.0, "invalid_value": 0.0,
     "height_scale_m": 0.25, "focal_over_width": FOCAL_OVER_WIDTH,
     "floor_fit": FLOOR_FIT}
+_DEPTH_FIELDS = ("offset_m", "scale_m", "clip", "invalid_value")  # every normalisation's
 _HEIGHT_FIELDS = ("height_scale_m", "focal_over_width")
 NEAREST_HEIGHT = "nearest_height"   # normalisation key of the near-side height (value True)
 # normalisation key (value True): the relief of what lies below a table top measured from
@@ -96,10 +97,9 @@ _FLOOR_FITS = FLOOR_FITS
 # Every key a normalisation may carry. An unknown one is refused: it would be an input this
 # code does not build (a checkpoint from a newer version), and the network would run blind.
 NORMALISATION_KEYS = frozenset({
-    "mode", "offset_m", "scale_m", "clip", "invalid_value", "height_scale_m",
-    "focal_over_width", "floor_fit", "intrinsics", "support_above_floor", "relief_window_px",
-    "relief_smoothing_px", "relief_base_px", "relief_noise_sds", RELIEF_BENEATH_SUPPORT,
-    NEAREST_HEIGHT})
+    "mode", *_DEPTH_FIELDS, *_HEIGHT_FIELDS, "floor_fit", "intrinsics", "support_above_floor",
+    "relief_window_px", "relief_smoothing_px", "relief_base_px", "relief_noise_sds",
+    RELIEF_BENEATH_SUPPORT, NEAREST_HEIGHT})
 # normalisation["intrinsics"]: where the height channel's camera comes from in training.
 INTRINSICS_FROM_CAMERA_INFO = "camera_info"
 DEFAULT_INPUT_SIZE: tuple[int, int] = (160, 120)  # (W, H) working resolution
@@ -119,8 +119,7 @@ def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
         raise ValueError(f"normalisation has fields this version does not know: {unknown} "
                          f"(a checkpoint from a newer task_outcome_ros?), got {norm!r}")
     try:
-        out = {"mode": "fixed", **{k: float(norm[k]) for k in
-                                   ("offset_m", "scale_m", "clip", "invalid_value")}}
+        out = {"mode": "fixed", **{k: float(norm[k]) for k in _DEPTH_FIELDS}}
         if any(k in norm for k in _HEIGHT_FIELDS):
             out.update({k: float(norm[k]) for k in _HEIGHT_FIELDS})
             out["floor_fit"] = norm.get("floor_fit", LEGACY_FLOOR_FIT)
