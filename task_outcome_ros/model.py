@@ -337,7 +337,8 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
                   normalisation: dict[str, Any] | None = None,
                   intrinsics: torch.Tensor | None = None,
                   floor_tracker: FloorTracker | None = None,
-                  nearest: torch.Tensor | None = None) -> torch.Tensor:
+                  nearest: torch.Tensor | None = None,
+                  height_m: torch.Tensor | None = None) -> torch.Tensor:
     """(N, h, w) working-size depth (metres, as ``resize_depth`` gives) and valid fraction ->
     (N, C, h, w) network input (C = 2, 3 with heights, +1 with their local relief, +1 with
     the near-side heights). Training uses this on its cached ``resize_depth`` output,
@@ -347,14 +348,28 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
 
     ``intrinsics`` (N, 4), ``camera.Intrinsics.normalised`` per image, are used for the heights
     only when the normalisation says the network was trained with them; else the nominal
-    camera is (a network trained on nominal heights must see nominal heights)."""
+    camera is (a network trained on nominal heights must see nominal heights).
+
+    ``height_m`` (N, h, w): heights above the support plane already measured (metres), used
+    instead of fitting the plane on ``depth``; for training on crops of an image
+    (training/crops.py), which may hold too little of the floor to fit it. Only for a
+    normalisation whose heights are the plain height channel (no relief, no near side)."""
     norm = check_normalisation(normalisation or DEFAULT_NORMALISATION)
     depth, valid_fraction = depth.float(), valid_fraction.float()
     has = valid_fraction > 1e-6
     z = ((depth - norm["offset_m"]) / norm["scale_m"]).clamp(-norm["clip"], norm["clip"])
     z = torch.where(has, z, torch.full_like(z, norm["invalid_value"]))
     channels = [z, torch.where(has, valid_fraction, torch.zeros_like(z))]
-    if "height_scale_m" in norm:
+    if height_m is not None:
+        if "height_scale_m" not in norm or "relief_window_px" in norm or NEAREST_HEIGHT in norm:
+            raise ValueError("network_input: precomputed heights fit only a normalisation "
+                             "with the plain height channel (no relief, no near side)")
+        if height_m.shape != depth.shape:
+            raise ValueError(f"network_input: heights of shape {tuple(height_m.shape)} for "
+                             f"depth of shape {tuple(depth.shape)}")
+        height = torch.where(has, height_m.float(), torch.zeros_like(z))
+        channels.append((height / norm["height_scale_m"]).clamp(-norm["clip"], norm["clip"]))
+    elif "height_scale_m" in norm:
         use = intrinsics if norm.get("intrinsics") == INTRINSICS_FROM_CAMERA_INFO else None
         wants_nearest = NEAREST_HEIGHT in norm
         if wants_nearest and (nearest is None or nearest.shape != depth.shape):

@@ -511,6 +511,29 @@ def test_fp32_contiguous_training_runs_and_its_checkpoint_loads(small_run, tmp_p
     assert result.labels.shape == labels.shape
 
 
+def test_training_on_crops_of_a_finer_size_gives_a_whole_image_model(small_run, tmp_path):
+    """--train-crop: the network trains on crops of the --input-size cache and its checkpoint
+    runs on the whole image at that size, in evaluation and in the node's segmenter."""
+    run = tmp_path / "run"
+    r = _cli("train", "--out", str(run), "--dataset-from", str(small_run), "--epochs", "1",
+             "--batch-size", "8", "--device", "cpu", "--input-size", "192", "144",
+             "--train-crop", "96", "72")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "measuring the heights of" in r.stdout and "for 96 x 72 crops" in r.stdout
+    from task_outcome_ros import checkpoint
+
+    ckpt = checkpoint.load(run / "train" / "best.pt")
+    assert ckpt.input_size == (192, 144)
+    assert tuple(ckpt.train_config["train"]["train_crop"]) == (96, 72)
+    assert 0.0 <= ckpt.metrics["image_all_correct"] <= 1.0   # validated on whole images
+    from task_outcome_ros.inference import OutcomeSegmenter
+    from training.render import read_pair
+
+    depth, labels = read_pair(small_run, 0)
+    result = OutcomeSegmenter(run / "train" / "best.pt", backend="torch").segment(depth)
+    assert result.labels.shape == labels.shape
+
+
 def test_a_run_links_another_runs_dataset_once_and_never_mixes_two(tmp_path):
     from training.dataset import link_dataset
 

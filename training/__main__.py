@@ -170,6 +170,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help="camera roll added per training image, up to this many degrees either "
                         "way on top of the spec's, by turning the image about its principal "
                         "point (default 0 = off)")
+    p.add_argument("--train-crop", type=int, nargs=2, metavar=("W", "H"), default=None,
+                   help="train on one W x H crop per image of the --input-size cache, heights "
+                        "measured on the whole image: a finer working size at the cost per "
+                        "step of the crop's (default: whole images)")
     p.add_argument("--lovasz-weight", type=float, default=None,
                    help="weight of the per-image outcome IoU (Lovász) loss added to "
                         "cross-entropy (default 0.5; 0 = off)")
@@ -240,6 +244,8 @@ def resolve_train_config(args: argparse.Namespace):
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
     if args.input_size is not None:
         overrides["input_size"] = tuple(args.input_size)
+    if args.train_crop is not None:
+        overrides["train_crop"] = tuple(args.train_crop)
     return dataclasses.replace(TrainConfig(), **overrides).validate()
 
 

@@ -795,6 +795,11 @@ class TrainConfig:
     # spec's own (roll.roll_images: the image turned about its principal point, exact for
     # depth along the optical axis). 0 = off.
     aug_roll_deg: float = 0.0
+    # (w, h): train on one crop of this size per image, cut from the input_size cache, with
+    # the heights measured on the whole image (training/crops.py): a finer input_size at the
+    # coarse size's cost per step; inference runs on the whole image. None = whole images.
+    # Not with aug_holes, aug_roll_deg, nearest_height or relief_window_px.
+    train_crop: tuple[int, int] | None = None
     # Weight of the per-image outcome IoU (Lovász-softmax) loss added to cross-entropy
     # (losses.py); 0 = cross-entropy alone. 0.5 (model 0.1.6): fewer split objects; image
     # all-correct 0.982 -> 0.986 (validation), 0.980 -> 0.982 (seed-1), 0.980 -> 0.987 on the
@@ -885,6 +890,8 @@ class TrainConfig:
         if self.aug_roll_deg and not self.augment:
             raise ConfigError(f"{o}.aug_roll_deg = {self.aug_roll_deg} needs augment (the roll "
                               "is drawn by the augmentation): set augment or aug_roll_deg 0")
+        if self.train_crop is not None:
+            self._check_train_crop(o)
         # Only a level other than off and the default can be told from "left alone"; the
         # class attribute is the field's default.
         default_noise = TrainConfig.aug_noise
@@ -927,6 +934,19 @@ class TrainConfig:
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{o}.{name} = {getattr(self, name)!r}: expected true/false")
         return self
+
+    def _check_train_crop(self, o: str) -> None:
+        cw, ch = self.train_crop
+        _check_int(o, "train_crop[0]", cw, 32, self.input_size[0])
+        _check_int(o, "train_crop[1]", ch, 32, self.input_size[1])
+        if not self.augment:
+            raise ConfigError(f"{o}.train_crop needs augment (the crops are drawn by it)")
+        unsupported = [name for name in ("aug_holes", "aug_roll_deg", "nearest_height",
+                                         "relief_window_px") if getattr(self, name)]
+        if unsupported:
+            raise ConfigError(f"{o}.train_crop does not combine with {', '.join(unsupported)}: "
+                              "crops carry heights measured on the whole image, which those "
+                              "would change (training/crops.py)")
 
     @property
     def model_args(self) -> dict:

@@ -63,6 +63,7 @@ from training.config import (
     save_json,
     to_dict,
 )
+from training.crops import crop_batch, measure_heights
 from training.dataset import load_cache, load_manifest, manifest_table
 from training.hard_cases import episode_hard_cases
 from training.holes import no_return_holes
@@ -402,8 +403,11 @@ def faster_layout(cfg: TrainConfig, arrays: dict, norm: dict, model_args: dict,
     sample = gather_batch(arrays, np.arange(min(cfg.batch_size, len(arrays["indices"]))), None)
     x = network_input(sample.depth, sample.valid, norm, sample.intrinsics,
                       nearest=sample.nearest).to(device)
-    step_s = layout_step_seconds(model_args, x, sample.labels.to(device), weights, autocast,
-                                 scaler, cfg)
+    labels = sample.labels.to(device)
+    if cfg.train_crop is not None:  # timed at the size the network trains on
+        cw, ch = cfg.train_crop
+        x, labels = x[..., :ch, :cw], labels[..., :ch, :cw]
+    step_s = layout_step_seconds(model_args, x, labels, weights, autocast, scaler, cfg)
     return step_s[True] < step_s[False], (f"chosen: {step_s[True]:.3f} s a step "
                                           f"channels-last, {step_s[False]:.3f} s contiguous")
 
@@ -518,6 +522,18 @@ def small_outcome_sample_weights(manifest: dict, indices: np.ndarray, weight: fl
     return np.where(small, weight, 1.0)
 
 
+def training_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator, cfg: TrainConfig,
+                   aug_noise: float, norm: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """The network input and labels of the training images ``idx``: whole images
+    (``gather_batch``, augmented when ``cfg.augment``) or one crop of each
+    (``crops.crop_batch``, with ``cfg.train_crop``)."""
+    if cfg.train_crop is not None:
+        return crop_batch(arrays, idx, cfg.train_crop, gen, aug_noise, norm)
+    depth, valid, labels, intrinsics, nearest = gather_batch(
+        arrays, idx, gen if cfg.augment else None, aug_noise, cfg.aug_holes, cfg.aug_roll_deg)
+    return network_input(depth, valid, norm, intrinsics, nearest=nearest), labels
+
+
 def combined_sample_weights(*weights: np.ndarray | None) -> np.ndarray | None:
     """The product of per-image sampling weights (None: uniform, left out)."""
     given = [w for w in weights if w is not None]
@@ -538,7 +554,7 @@ ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
                       "relief_window_px": 0, "relief_smoothing_px": 0, "relief_base_px": 0,
                       "relief_noise_sds": 0.0, "nearest_height": False,
                       "relief_beneath_support": False, "aug_holes": 0.0,
-                      "aug_roll_deg": 0.0}
+                      "aug_roll_deg": 0.0, "train_crop": None}
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
@@ -623,6 +639,11 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         raise ValueError(f"{run_dir}: the train split is empty; generate more episodes")
     if cfg.augment and cfg.aug_roll_deg > 0:
         measure_for_roll(train_arrays)
+    if cfg.train_crop is not None:
+        print(f"train: measuring the heights of {len(train_arrays['indices'])} training images "
+              f"at {cfg.input_size[0]} x {cfg.input_size[1]} for {cfg.train_crop[0]} x "
+              f"{cfg.train_crop[1]} crops")
+        measure_heights(train_arrays, check_normalisation(norm))
     table = manifest_table(manifest)
     val_truth = _truth_present(manifest, val_arrays["indices"], table)
     weights = class_weights(train_arrays["labels"], cfg.class_weight_power,
@@ -691,12 +712,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         t_epoch = time.perf_counter()
         for b in bar:
             idx = np.sort(order[b * cfg.batch_size:(b + 1) * cfg.batch_size])
-            depth, valid, labels, intrinsics, nearest = gather_batch(
-                train_arrays, idx, gen if cfg.augment else None, aug_noise, cfg.aug_holes,
-                cfg.aug_roll_deg)
-            x = network_input(depth, valid, norm, intrinsics, nearest=nearest).to(
-                device, memory_format=memory_format)
-            labels = labels.to(device)
+            x, labels = training_batch(train_arrays, idx, gen, cfg, aug_noise, norm)
+            x, labels = x.to(device, memory_format=memory_format), labels.to(device)
             for group in optim.param_groups:
                 group["lr"] = lr_at(epoch * steps_per_epoch + b, total_steps, cfg.lr)
             balance = (object_balance_weights(labels, outcome_ids, cfg.object_balance_pixels,
