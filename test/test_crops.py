@@ -1,16 +1,16 @@
 """Training on crops of a finer working size (training/crops.py): a crop's heights are the
-whole image's, its noise moves depth and height along the same rays, its labels stay on
-its objects, and the option is refused where it cannot act."""
+whole image's, they follow its depths through noise and roll, its labels stay on its objects,
+and the option is refused where it cannot act."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
 import torch
 
-from task_outcome_ros.floor import backproject, support_plane
 from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE
 from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
@@ -20,14 +20,16 @@ from task_outcome_ros.model import (
 )
 from training.config import ConfigError, TrainConfig
 from training.crops import (
-    HEIGHT_KEY,
+    PLANE_NORMAL_KEY,
     PLANE_OFFSET_KEY,
     crop_batch,
     crop_origins,
-    measure_heights,
-    move_along_rays,
+    heights_along_rays,
+    measure_planes,
+    roll_margins,
 )
 from training.render import Camera, SceneBox, look_at, render
+from training.roll import roll_sources
 
 pytestmark = pytest.mark.unit
 
@@ -60,17 +62,36 @@ def tensors(arrays: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
             torch.from_numpy(arrays["intrinsics"]))
 
 
-def test_measured_heights_are_the_whole_images_height_channel():
-    arrays = scene_arrays()
-    measure_heights(arrays, NORM)
+def whole_heights(arrays: dict) -> torch.Tensor:
+    """``heights_along_rays`` over every pixel of the whole images."""
     depth, valid, intrinsics = tensors(arrays)
-    fitted = network_input(depth, valid, NORM, intrinsics)
-    given = network_input(depth, valid, NORM, height_m=torch.from_numpy(arrays[HEIGHT_KEY]))
+    n, h, w = depth.shape
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32),
+                          torch.arange(w, dtype=torch.float32), indexing="ij")
+    return heights_along_rays(depth, valid > 0, u.expand(n, h, w), v.expand(n, h, w), (w, h),
+                              torch.from_numpy(arrays[PLANE_NORMAL_KEY]),
+                              torch.from_numpy(arrays[PLANE_OFFSET_KEY]), intrinsics,
+                              NORM["focal_over_width"])
+
+
+@pytest.mark.parametrize("norm", [NORM, check_normalisation(DEFAULT_NORMALISATION)],
+                         ids=["camera_info", "nominal camera"])
+def test_heights_along_the_rays_are_the_whole_images_height_channel(norm):
+    arrays = scene_arrays()
+    measure_planes(arrays, norm)
+    depth, valid, intrinsics = tensors(arrays)
+    fitted = network_input(depth, valid, norm, intrinsics)
+    height = whole_heights(arrays) if norm is NORM else heights_along_rays(
+        depth, valid > 0, *torch.meshgrid(torch.arange(160.0), torch.arange(120.0),
+                                          indexing="xy"), (160, 120),
+        torch.from_numpy(arrays[PLANE_NORMAL_KEY]), torch.from_numpy(arrays[PLANE_OFFSET_KEY]),
+        None, norm["focal_over_width"])
+    given = network_input(depth, valid, norm, height_m=height)
     assert torch.equal(fitted[:, :2], given[:, :2])
-    # float16 storage: heights under 1 m keep 0.5 mm
-    assert (fitted[:, 2] - given[:, 2]).abs().max() < 0.0005 / NORM["height_scale_m"]
+    assert (fitted[:, 2] - given[:, 2]).abs().max() < 1e-5
     box = torch.from_numpy(arrays["labels"] == 2)
-    assert fitted[:, 2][box].max() * NORM["height_scale_m"] == pytest.approx(0.2, abs=0.01)
+    if norm is NORM:  # the true camera: the box's top at its true 0.2 m
+        assert fitted[:, 2][box].max() * NORM["height_scale_m"] == pytest.approx(0.2, abs=0.01)
 
 
 def test_precomputed_heights_are_refused_where_the_channel_is_not_the_plain_height():
@@ -81,25 +102,6 @@ def test_precomputed_heights_are_refused_where_the_channel_is_not_the_plain_heig
         network_input(depth, valid, relief, height_m=torch.zeros_like(depth))
     with pytest.raises(ValueError, match="shape"):
         network_input(depth, valid, NORM, height_m=torch.zeros(1, 60, 80))
-
-
-def test_noise_moves_the_height_as_a_refit_on_the_same_plane_would():
-    arrays = scene_arrays()
-    measure_heights(arrays, NORM)
-    depth, valid, intrinsics = tensors(arrays)
-    has = valid > 0
-    dz = 0.02 * torch.randn(depth.shape, generator=torch.Generator().manual_seed(1)) * has
-    moved_depth, moved_height = move_along_rays(
-        depth, has, torch.from_numpy(arrays[HEIGHT_KEY]).float(),
-        torch.from_numpy(arrays[PLANE_OFFSET_KEY])[:, None, None], dz)
-    normal, offset = support_plane(backproject(depth, NORM["focal_over_width"], intrinsics), has,
-                                   NORM["floor_fit"])
-    points = backproject(moved_depth, NORM["focal_over_width"], intrinsics)
-    want = (points * normal[:, None, None]).sum(-1) - offset[:, None, None]
-    assert torch.equal(moved_depth, depth + dz)
-    assert (moved_height - want)[has].abs().max() < 0.001      # the float16 heights' own error
-    assert (moved_height - torch.from_numpy(arrays[HEIGHT_KEY]).float())[has].abs().mean() > 0.005
-    assert (moved_height[~has] == 0).all()
 
 
 def test_crops_lie_inside_the_image_and_mostly_on_an_outcome():
@@ -122,7 +124,7 @@ def test_crops_lie_inside_the_image_and_mostly_on_an_outcome():
 
 def test_a_crop_batch_is_the_whole_images_input_cut_out_and_mirrored():
     arrays = scene_arrays()
-    measure_heights(arrays, NORM)
+    measure_planes(arrays, NORM)
     depth, valid, intrinsics = tensors(arrays)
     whole = network_input(depth, valid, NORM, intrinsics)
     labels = torch.from_numpy(arrays["labels"]).long()
@@ -140,16 +142,46 @@ def test_a_crop_batch_is_the_whole_images_input_cut_out_and_mirrored():
         kept = x[i, 1] > 0                                   # the 0-3 % dropped lose depth only
         assert kept.float().mean() > 0.9
         assert torch.equal(x[i, :2][:, kept], cut[:2][:, kept])
-        assert (x[i, 2][kept] - cut[2][kept]).abs().max() < 0.001
+        assert (x[i, 2][kept] - cut[2][kept]).abs().max() < 1e-5
 
 
-def test_the_crop_is_refused_larger_than_the_working_size_or_with_what_moves_heights():
+def test_a_turned_crop_keeps_its_heights_and_labels_on_the_box():
+    arrays = scene_arrays()
+    measure_planes(arrays, NORM)
+    gen = torch.Generator().manual_seed(2)
+    plain, plain_labels = crop_batch(arrays, np.arange(3), (96, 72), gen, 0.0, NORM)
+    gen = torch.Generator().manual_seed(2)
+    x, labels = crop_batch(arrays, np.arange(3), (96, 72), gen, 0.0, NORM, roll_deg=20.0)
+    for mirrored in (plain_labels, plain_labels.flip(-1)):   # the mirror is drawn after it
+        turned = (labels != mirrored) & (labels != IGNORE) & (mirrored != IGNORE)
+        assert turned.float().mean() > 0.01                # it did turn
+    scale = NORM["height_scale_m"]
+    for i in range(3):
+        box, floor = labels[i] == 2, (labels[i] == 0) & (x[i, 1] > 0.99)
+        assert int(box.sum()) == pytest.approx(int((plain_labels[i] == 2).sum()), rel=0.15)
+        assert x[i, 2][box].max() * scale == pytest.approx(0.2, abs=0.01)   # its top, 0.2 m
+        assert (x[i, 2][floor] * scale).abs().quantile(0.99) < 0.01         # the floor, 0 m
+
+
+def test_the_roll_margins_hold_the_turned_crop():
+    for crop, deg in (((160, 120), 15.0), ((96, 72), 45.0), ((64, 128), 5.0)):
+        mx, my = roll_margins(crop, deg)
+        window = (crop[0] + 2 * mx, crop[1] + 2 * my)
+        centre = torch.tensor([[(window[0] - 1) / 2, (window[1] - 1) / 2]] * 2)
+        angles = torch.tensor([math.radians(deg), -math.radians(deg)])
+        source = roll_sources(angles, centre, torch.ones(2, 2), window[1], window[0])
+        inner = source[:, my:my + crop[1], mx:mx + crop[0]]
+        assert inner[..., 0].min() >= 0 and inner[..., 0].max() <= window[0] - 1
+        assert inner[..., 1].min() >= 0 and inner[..., 1].max() <= window[1] - 1
+
+
+def test_the_crop_is_refused_larger_than_the_working_size_or_with_other_height_channels():
     base = TrainConfig(input_size=(320, 240), train_crop=(160, 120)).validate()
     assert base.train_crop == (160, 120)
+    assert dataclasses.replace(base, aug_roll_deg=15.0, aug_holes=0.5).validate()
     for bad, match in (({"train_crop": (400, 120)}, r"train_crop\[0\]"),
                        ({"train_crop": (160, 16)}, r"train_crop\[1\]"),
-                       ({"aug_roll_deg": 15.0}, "aug_roll_deg"),
-                       ({"aug_holes": 0.5}, "aug_holes"),
+                       ({"nearest_height": True}, "nearest_height"),
                        ({"relief_window_px": 15}, "relief_window_px"),
                        ({"augment": False, "aug_noise": 0.0}, "augment")):
         with pytest.raises(ConfigError, match=match):

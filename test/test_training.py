@@ -517,9 +517,9 @@ def test_training_on_crops_of_a_finer_size_gives_a_whole_image_model(small_run, 
     run = tmp_path / "run"
     r = _cli("train", "--out", str(run), "--dataset-from", str(small_run), "--epochs", "1",
              "--batch-size", "8", "--device", "cpu", "--input-size", "192", "144",
-             "--train-crop", "96", "72")
+             "--train-crop", "96", "72", "--aug-holes", "0.5", "--aug-roll", "15")
     assert r.returncode == 0, r.stderr[-2000:]
-    assert "measuring the heights of" in r.stdout and "for 96 x 72 crops" in r.stdout
+    assert "fitting the support planes of" in r.stdout and "for 96 x 72 crops" in r.stdout
     from task_outcome_ros import checkpoint
 
     ckpt = checkpoint.load(run / "train" / "best.pt")

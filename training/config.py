@@ -798,7 +798,7 @@ class TrainConfig:
     # (w, h): train on one crop of this size per image, cut from the input_size cache, with
     # the heights measured on the whole image (training/crops.py): a finer input_size at the
     # coarse size's cost per step; inference runs on the whole image. None = whole images.
-    # Not with aug_holes, aug_roll_deg, nearest_height or relief_window_px.
+    # Not with nearest_height or relief_window_px.
     train_crop: tuple[int, int] | None = None
     # Weight of the per-image outcome IoU (Lovász-softmax) loss added to cross-entropy
     # (losses.py); 0 = cross-entropy alone. 0.5 (model 0.1.6): fewer split objects; image
@@ -941,12 +941,12 @@ class TrainConfig:
         _check_int(o, "train_crop[1]", ch, 32, self.input_size[1])
         if not self.augment:
             raise ConfigError(f"{o}.train_crop needs augment (the crops are drawn by it)")
-        unsupported = [name for name in ("aug_holes", "aug_roll_deg", "nearest_height",
-                                         "relief_window_px") if getattr(self, name)]
+        unsupported = [name for name in ("nearest_height", "relief_window_px")
+                       if getattr(self, name)]
         if unsupported:
             raise ConfigError(f"{o}.train_crop does not combine with {', '.join(unsupported)}: "
-                              "crops carry heights measured on the whole image, which those "
-                              "would change (training/crops.py)")
+                              "a crop's heights come from planes fitted on the whole image, "
+                              "those channels are not made from them (training/crops.py)")
 
     @property
     def model_args(self) -> dict:

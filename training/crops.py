@@ -8,11 +8,11 @@ crops, the network sees the finer pixels at the coarse size's cost per step, and
 fully convolutional it runs on the whole image at inference.
 
 A crop may hold too little of the floor to fit the support plane on, so each cached image's
-heights are measured once, on the whole image, before training (``measure_heights``), and
-cropped with the depth. The augmentations a crop gets keep those heights exact: a shift (the
-crop's own position), a mirror, and re-drawn axial noise whose effect on the height follows
-from the plane (along a pixel's ray, a depth change dz moves the height by dz (h + c) / z,
-with c the plane's offset: ``h = n . (z r) - c``). Holes and roll are not supported here.
+plane is fitted once, on the whole image, before training (``measure_planes``: the plane
+``model.network_input`` fits). A pixel's height above it is linear in its depth along its
+ray, ``h = z (n . r(u, v)) - c`` (``floor.backproject``'s rays), so a crop's heights are
+computed from its depths after every augmentation: re-drawn noise, lost depth, and a roll,
+which moves each pixel's ray to the one it was turned from (``roll.roll_sources``).
 """
 
 from __future__ import annotations
@@ -25,35 +25,62 @@ import torch
 from task_outcome_ros.floor import backproject, support_plane
 from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE, REFERENCE_PIXELS
 from task_outcome_ros.model import INTRINSICS_FROM_CAMERA_INFO, network_input
+from training.holes import no_return_holes
+from training.roll import draw_roll, roll_images, roll_sources
 
-HEIGHT_KEY, PLANE_OFFSET_KEY = "height_m", "plane_offset"
+PLANE_NORMAL_KEY, PLANE_OFFSET_KEY = "plane_normal", "plane_offset"
 # Share of crops centred (with jitter) on a pixel of an outcome: most of a scene is floor and
 # fixture, which a crop anywhere shows often enough; the rest are drawn anywhere, so that
 # crops without objects teach the network not to invent them.
 ON_OUTCOME_SHARE = 0.75
 
 
-def measure_heights(arrays: dict, norm: dict, chunk: int = 128) -> None:
-    """Adds each cached image's heights above its support plane (``HEIGHT_KEY``, (N, h, w)
-    float16 metres, 0 without depth) and the plane's offset (``PLANE_OFFSET_KEY``, (N,)) to
-    ``arrays``: the same plane and heights ``model.network_input`` measures on the whole
-    image (``floor.height_above_floor``)."""
+def measure_planes(arrays: dict, norm: dict, chunk: int = 128) -> None:
+    """Adds each cached image's support plane, fitted on the whole image as
+    ``model.network_input`` fits it (``floor.support_plane``), to ``arrays``: unit normals
+    (``PLANE_NORMAL_KEY``, (N, 3)) and offsets (``PLANE_OFFSET_KEY``, (N,))."""
     depth_all, valid_all = arrays["depth"], arrays["valid"]
-    heights = np.zeros(depth_all.shape, np.float16)
+    normals = np.zeros((len(depth_all), 3), np.float32)
     offsets = np.zeros(len(depth_all), np.float32)
-    use_info = norm.get("intrinsics") == INTRINSICS_FROM_CAMERA_INFO
     for start in range(0, len(depth_all), chunk):
         part = slice(start, start + chunk)
         depth = torch.from_numpy(depth_all[part].astype(np.float32))
         has = torch.from_numpy(valid_all[part].astype(np.float32)) > 1e-6
-        intrinsics = (torch.from_numpy(arrays["intrinsics"][part]) if use_info else None)
-        points = backproject(depth, norm["focal_over_width"], intrinsics)
+        points = backproject(depth, norm["focal_over_width"], image_intrinsics(arrays, part, norm))
         normal, offset = support_plane(points, has, norm["floor_fit"],
                                        norm.get("support_above_floor"))
-        height = (points * normal[:, None, None]).sum(-1) - offset[:, None, None]
-        heights[part] = torch.where(has, height, torch.zeros_like(height)).numpy()
-        offsets[part] = offset.numpy()
-    arrays[HEIGHT_KEY], arrays[PLANE_OFFSET_KEY] = heights, offsets
+        normals[part], offsets[part] = normal.numpy(), offset.numpy()
+    arrays[PLANE_NORMAL_KEY], arrays[PLANE_OFFSET_KEY] = normals, offsets
+
+
+def image_intrinsics(arrays: dict, rows, norm: dict) -> torch.Tensor | None:
+    """The images' own intrinsics when the heights are measured with them, else None (the
+    nominal camera), as ``model.network_input`` chooses."""
+    if norm.get("intrinsics") != INTRINSICS_FROM_CAMERA_INFO:
+        return None
+    return torch.from_numpy(np.asarray(arrays["intrinsics"][rows], np.float32))
+
+
+def heights_along_rays(depth: torch.Tensor, has: torch.Tensor, u: torch.Tensor,
+                       v: torch.Tensor, size: tuple[int, int], normal: torch.Tensor,
+                       offset: torch.Tensor, intrinsics: torch.Tensor | None,
+                       focal_over_width: float) -> torch.Tensor:
+    """(N, h, w) heights above the planes (``normal`` (N, 3), ``offset`` (N,)) of the points
+    at ``depth`` along the rays of the whole image's pixels (``u``, ``v``) (N, h, w), for a
+    whole image of ``size`` (w, h): what ``floor.height_above_floor`` gives for those pixels
+    (``backproject``'s camera); 0 where ``has`` is False."""
+    width, height = size
+    u, v = u - (width - 1) / 2, v - (height - 1) / 2
+    if intrinsics is None:
+        f = focal_over_width * width
+        x, y = u / f, v / f
+    else:
+        k = intrinsics[:, :, None, None]
+        x = (u - k[:, 2] * width) / (k[:, 0] * width)
+        y = (v - k[:, 3] * height) / (k[:, 1] * height)
+    n = normal[:, :, None, None]
+    h = depth * (n[:, 0] * x + n[:, 1] * y + n[:, 2]) - offset[:, None, None]
+    return torch.where(has, h, torch.zeros_like(h))
 
 
 def crop_origins(labels: np.ndarray, crop: tuple[int, int], gen: torch.Generator
@@ -80,46 +107,79 @@ def crop_origins(labels: np.ndarray, crop: tuple[int, int], gen: torch.Generator
     return origins
 
 
-def move_along_rays(depth: torch.Tensor, has: torch.Tensor, height: torch.Tensor,
-                    offset: torch.Tensor, dz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Depths moved by ``dz`` along their pixels' rays, and their heights above the same plane
-    (offset ``offset``, broadcast per image): ``h = n . (z r) - c`` is linear in z, so the
-    height moves by dz (h + c) / z. Pixels without depth (``has`` False) keep height 0."""
-    moved = height + dz * (height + offset) / depth.clamp_min(1e-3)
-    return depth + dz, torch.where(has, moved, height)
+def roll_margins(crop: tuple[int, int], max_deg: float) -> tuple[int, int]:
+    """Pixels to add on each side of a crop so that the crop turned by up to ``max_deg``
+    still reads only from inside the window."""
+    a = math.radians(min(max_deg, 90.0))
+    cw, ch = crop
+    turned_w, turned_h = cw * math.cos(a) + ch * math.sin(a), cw * math.sin(a) + ch * math.cos(a)
+    return math.ceil((turned_w - cw) / 2) + 1, math.ceil((turned_h - ch) / 2) + 1
+
+
+def cut(array: np.ndarray, rows, origins: np.ndarray, size: tuple[int, int], fill
+        ) -> torch.Tensor:
+    """(N, h, w) windows of ``size`` (w, h) at ``origins`` (x, y) of the images ``rows`` of
+    ``array``; what lies outside an image is ``fill``."""
+    w, h = size
+    height, width = array.shape[1:]
+    out = np.full((len(origins), h, w), fill, array.dtype)
+    for k, (r, (x, y)) in enumerate(zip(rows, origins)):
+        x0, y0, x1, y1 = max(x, 0), max(y, 0), min(x + w, width), min(y + h, height)
+        if x1 > x0 and y1 > y0:
+            out[k, y0 - y:y1 - y, x0 - x:x1 - x] = array[r, y0:y1, x0:x1]
+    return torch.from_numpy(out)
 
 
 def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.Generator,
-               noise_level: float, norm: dict) -> tuple[torch.Tensor, torch.Tensor]:
+               noise_level: float, norm: dict, holes: float = 0.0, roll_deg: float = 0.0
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """The network input (N, C, h, w) and labels (N, h, w) of one ``crop`` (w, h) of each
-    cached image ``idx``, augmented: re-drawn axial noise of U(0, ``noise_level``) times the
-    sensor's at the cache's working size (``train.SENSOR_NOISE_PER_Z2``), 0-3 % of pixels
-    dropped, mirrored half the time. ``arrays`` must hold ``measure_heights``' answers."""
+    cached image ``idx``, augmented as ``train.augment`` augments whole images: turned as by
+    a camera rolled U(-``roll_deg``, ``roll_deg``) more (``roll.roll_images``, about the
+    crop's centre), re-drawn axial noise of U(0, ``noise_level``) times the sensor's at the
+    cache's working size (``train.SENSOR_NOISE_PER_Z2``), 0-3 % of pixels dropped, ``holes``
+    of the crops losing depth in blobs (``holes.no_return_holes``), mirrored half the time.
+    The heights come last, from the augmented depths (module docstring). ``arrays`` must
+    hold ``measure_planes``' answers."""
     from training.train import SENSOR_NOISE_PER_Z2  # train imports this module
 
-    labels_all = arrays["labels"][idx]
-    origins = crop_origins(labels_all, crop, gen)
-    cw, ch = crop
-
-    def cut(array: np.ndarray, rows) -> torch.Tensor:
-        return torch.from_numpy(np.stack([array[r, y:y + ch, x:x + cw]
-                                          for r, (x, y) in zip(rows, origins)]))
-
-    depth = cut(arrays["depth"], idx).float()
-    valid = cut(arrays["valid"], idx).float()
-    height = cut(arrays[HEIGHT_KEY], idx).float()
-    labels = cut(labels_all, range(len(idx))).long()
-    offset = torch.from_numpy(arrays[PLANE_OFFSET_KEY][idx])[:, None, None]
-    n = len(idx)
-    full_pixels = arrays["depth"].shape[1] * arrays["depth"].shape[2]
-    per_pixel = SENSOR_NOISE_PER_Z2 * math.sqrt(full_pixels / REFERENCE_PIXELS)
+    idx = np.asarray(idx)
+    n, (cw, ch) = len(idx), crop
+    full_h, full_w = arrays["depth"].shape[1:]
+    origins = crop_origins(arrays["labels"][idx], crop, gen)
+    mx, my = roll_margins(crop, roll_deg) if roll_deg > 0 else (0, 0)
+    window = (cw + 2 * mx, ch + 2 * my)
+    corners = origins - np.array([mx, my])
+    depth = cut(arrays["depth"], idx, corners, window, 0).float()
+    valid = cut(arrays["valid"], idx, corners, window, 0).float()
+    labels = cut(arrays["labels"], idx, corners, window, IGNORE).long()
+    grid_v, grid_u = torch.meshgrid(torch.arange(window[1], dtype=torch.float32),
+                                    torch.arange(window[0], dtype=torch.float32), indexing="ij")
+    u, v = grid_u.expand(n, -1, -1), grid_v.expand(n, -1, -1)
+    if roll_deg > 0:
+        angles = draw_roll(n, roll_deg, gen)
+        centre = torch.tensor([(window[0] - 1) / 2, (window[1] - 1) / 2]).expand(n, 2)
+        depth, valid, labels, _ = roll_images(angles, None, depth, valid, labels, gen=gen)
+        source = roll_sources(angles, centre, torch.ones(n, 2), window[1], window[0])
+        u, v = source[..., 0], source[..., 1]
+    inner = (slice(None), slice(my, my + ch), slice(mx, mx + cw))
+    depth, valid, labels, u, v = (t[inner] for t in (depth, valid, labels, u, v))
+    u = u + torch.from_numpy(corners[:, 0]).float()[:, None, None]
+    v = v + torch.from_numpy(corners[:, 1]).float()[:, None, None]
+    per_pixel = SENSOR_NOISE_PER_Z2 * math.sqrt(full_h * full_w / REFERENCE_PIXELS)
     level = per_pixel * noise_level * torch.rand(n, 1, 1, generator=gen)
-    dz = torch.randn(depth.shape, generator=gen) * level * depth ** 2
-    depth, height = move_along_rays(depth, valid > 1e-6, height, offset, dz)
+    depth = depth + torch.randn(depth.shape, generator=gen) * level * depth ** 2
     drop = torch.rand(depth.shape, generator=gen) < 0.03 * torch.rand(n, 1, 1, generator=gen)
     valid = torch.where(drop, torch.zeros_like(valid), valid)
+    if holes > 0:
+        gone = no_return_holes(depth.shape, holes, gen)
+        valid = torch.where(gone, torch.zeros_like(valid), valid)
+        labels = torch.where(gone, torch.full_like(labels, IGNORE), labels)
+    height = heights_along_rays(depth, valid > 1e-6, u, v, (full_w, full_h),
+                                torch.from_numpy(arrays[PLANE_NORMAL_KEY][idx]),
+                                torch.from_numpy(arrays[PLANE_OFFSET_KEY][idx]),
+                                image_intrinsics(arrays, idx, norm), norm["focal_over_width"])
     flip = (torch.rand(n, generator=gen) < 0.5)[:, None, None]
     depth, valid, height, labels = (torch.where(flip, t.flip(-1), t)
                                     for t in (depth, valid, height, labels))
     return network_input(depth, valid, norm, height_m=height), labels
-

@@ -63,7 +63,7 @@ from training.config import (
     save_json,
     to_dict,
 )
-from training.crops import crop_batch, measure_heights
+from training.crops import crop_batch, measure_planes
 from training.dataset import load_cache, load_manifest, manifest_table
 from training.hard_cases import episode_hard_cases
 from training.holes import no_return_holes
@@ -528,7 +528,8 @@ def training_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator, cfg: Tra
     (``gather_batch``, augmented when ``cfg.augment``) or one crop of each
     (``crops.crop_batch``, with ``cfg.train_crop``)."""
     if cfg.train_crop is not None:
-        return crop_batch(arrays, idx, cfg.train_crop, gen, aug_noise, norm)
+        return crop_batch(arrays, idx, cfg.train_crop, gen, aug_noise, norm, cfg.aug_holes,
+                          cfg.aug_roll_deg)
     depth, valid, labels, intrinsics, nearest = gather_batch(
         arrays, idx, gen if cfg.augment else None, aug_noise, cfg.aug_holes, cfg.aug_roll_deg)
     return network_input(depth, valid, norm, intrinsics, nearest=nearest), labels
@@ -637,13 +638,13 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         norm[RELIEF_BENEATH_SUPPORT] = True
     if len(train_arrays["indices"]) == 0:
         raise ValueError(f"{run_dir}: the train split is empty; generate more episodes")
-    if cfg.augment and cfg.aug_roll_deg > 0:
-        measure_for_roll(train_arrays)
     if cfg.train_crop is not None:
-        print(f"train: measuring the heights of {len(train_arrays['indices'])} training images "
-              f"at {cfg.input_size[0]} x {cfg.input_size[1]} for {cfg.train_crop[0]} x "
+        print(f"train: fitting the support planes of {len(train_arrays['indices'])} training "
+              f"images at {cfg.input_size[0]} x {cfg.input_size[1]} for {cfg.train_crop[0]} x "
               f"{cfg.train_crop[1]} crops")
-        measure_heights(train_arrays, check_normalisation(norm))
+        measure_planes(train_arrays, check_normalisation(norm))
+    elif cfg.augment and cfg.aug_roll_deg > 0:  # crops are turned in windows, measured there
+        measure_for_roll(train_arrays)
     table = manifest_table(manifest)
     val_truth = _truth_present(manifest, val_arrays["indices"], table)
     weights = class_weights(train_arrays["labels"], cfg.class_weight_power,
