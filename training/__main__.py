@@ -171,9 +171,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                         "way on top of the spec's, by turning the image about its principal "
                         "point (default 0 = off)")
     p.add_argument("--train-crop", type=int, nargs=2, metavar=("W", "H"), default=None,
-                   help="train on one W x H crop per image of the --input-size cache, heights "
-                        "measured on the whole image: a finer working size at the cost per "
-                        "step of the crop's (default: whole images)")
+                   help="train on one W x H crop per image of the --input-size cache, its "
+                        "heights above the support plane fitted on the whole image: a finer "
+                        "working size at the cost per step of the crop's (default: whole "
+                        "images)")
     p.add_argument("--lovasz-weight", type=float, default=None,
                    help="weight of the per-image outcome IoU (Lovász) loss added to "
                         "cross-entropy (default 0.5; 0 = off)")

@@ -795,9 +795,10 @@ class TrainConfig:
     # spec's own (roll.roll_images: the image turned about its principal point, exact for
     # depth along the optical axis). 0 = off.
     aug_roll_deg: float = 0.0
-    # (w, h): train on one crop of this size per image, cut from the input_size cache, with
-    # the heights measured on the whole image (training/crops.py): a finer input_size at the
-    # coarse size's cost per step; inference runs on the whole image. None = whole images.
+    # (w, h): train on one crop of this size per image, cut from the input_size cache, its
+    # heights above the support plane fitted on the whole image (training/crops.py): a finer
+    # input_size at the coarse size's cost per step; inference runs on the whole image.
+    # None = whole images.
     # Not with nearest_height or relief_window_px.
     train_crop: tuple[int, int] | None = None
     # Weight of the per-image outcome IoU (Lovász-softmax) loss added to cross-entropy

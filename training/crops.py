@@ -91,7 +91,9 @@ def crop_origins(labels: np.ndarray, crop: tuple[int, int], gen: torch.Generator
     anywhere. Every crop lies inside its image."""
     n, height, width = labels.shape
     cw, ch = crop
-    draws = torch.rand(n, 5, generator=gen).numpy()  # drawn all at once: one stream per batch
+    # Drawn all at once, five per image of which four are read (the runs documented on
+    # 2026-12-06 drew five: keep it so they reproduce).
+    draws = torch.rand(n, 5, generator=gen).numpy()
     origins = np.zeros((n, 2), np.int64)
     for i in range(n):
         outcome = np.flatnonzero((labels[i] >= FIRST_OUTCOME_ID) & (labels[i] != IGNORE))
