@@ -90,17 +90,29 @@ def backproject(depth: torch.Tensor, focal_over_width: float = FOCAL_OVER_WIDTH,
     fy / H, principal-point offsets from the centre in widths and heights); None: the nominal
     camera, fx = fy = ``focal_over_width`` x w, principal point at the centre."""
     n, h, w = depth.shape
-    u = torch.arange(w, dtype=depth.dtype, device=depth.device) - (w - 1) / 2
-    v = torch.arange(h, dtype=depth.dtype, device=depth.device) - (h - 1) / 2
+    u = torch.arange(w, dtype=depth.dtype, device=depth.device)[None, None, :]
+    v = torch.arange(h, dtype=depth.dtype, device=depth.device)[None, :, None]
+    if intrinsics is not None:
+        intrinsics = intrinsics.to(device=depth.device, dtype=depth.dtype)
+    x, y = pixel_rays(u, v, (w, h), focal_over_width, intrinsics)
+    return torch.stack([depth * x, depth * y, depth.expand(n, h, w)], dim=-1)
+
+
+def pixel_rays(u: torch.Tensor, v: torch.Tensor, size: tuple[int, int],
+               focal_over_width: float = FOCAL_OVER_WIDTH,
+               intrinsics: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rays (x / z, y / z) through pixel columns ``u`` and rows ``v`` (any shapes that
+    broadcast against (N, 1, 1), fractional pixels allowed) of an image of ``size`` (w, h),
+    for ``backproject``'s camera (``intrinsics`` (N, 4) or the nominal one)."""
+    w, h = size
+    u, v = u - (w - 1) / 2, v - (h - 1) / 2
     if intrinsics is None:
         f = focal_over_width * w
-        x, y = u[None, None, :] / f, v[None, :, None] / f
-    else:
-        k = intrinsics.to(device=depth.device, dtype=depth.dtype)
-        fx, fy = (k[:, 0] * w)[:, None, None], (k[:, 1] * h)[:, None, None]
-        cx, cy = (k[:, 2] * w)[:, None, None], (k[:, 3] * h)[:, None, None]
-        x, y = (u[None, None, :] - cx) / fx, (v[None, :, None] - cy) / fy
-    return torch.stack([depth * x, depth * y, depth.expand(n, h, w)], dim=-1)
+        return u / f, v / f
+    k = intrinsics
+    fx, fy = (k[:, 0] * w)[:, None, None], (k[:, 1] * h)[:, None, None]
+    cx, cy = (k[:, 2] * w)[:, None, None], (k[:, 3] * h)[:, None, None]
+    return (u - cx) / fx, (v - cy) / fy
 
 
 def _plane_through(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

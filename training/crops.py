@@ -22,7 +22,7 @@ import math
 import numpy as np
 import torch
 
-from task_outcome_ros.floor import backproject, support_plane
+from task_outcome_ros.floor import backproject, pixel_rays, support_plane
 from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE, REFERENCE_PIXELS
 from task_outcome_ros.model import INTRINSICS_FROM_CAMERA_INFO, network_input
 from training.holes import no_return_holes
@@ -68,16 +68,8 @@ def heights_along_rays(depth: torch.Tensor, has: torch.Tensor, u: torch.Tensor,
     """(N, h, w) heights above the planes (``normal`` (N, 3), ``offset`` (N,)) of the points
     at ``depth`` along the rays of the whole image's pixels (``u``, ``v``) (N, h, w), for a
     whole image of ``size`` (w, h): what ``floor.height_above_floor`` gives for those pixels
-    (``backproject``'s camera); 0 where ``has`` is False."""
-    width, height = size
-    u, v = u - (width - 1) / 2, v - (height - 1) / 2
-    if intrinsics is None:
-        f = focal_over_width * width
-        x, y = u / f, v / f
-    else:
-        k = intrinsics[:, :, None, None]
-        x = (u - k[:, 2] * width) / (k[:, 0] * width)
-        y = (v - k[:, 3] * height) / (k[:, 1] * height)
+    (``floor.pixel_rays``: ``backproject``'s camera); 0 where ``has`` is False."""
+    x, y = pixel_rays(u, v, size, focal_over_width, intrinsics)
     n = normal[:, :, None, None]
     h = depth * (n[:, 0] * x + n[:, 1] * y + n[:, 2]) - offset[:, None, None]
     return torch.where(has, h, torch.zeros_like(h))
