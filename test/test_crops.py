@@ -25,6 +25,7 @@ from training.crops import (
     crop_batch,
     crop_origins,
     heights_along_rays,
+    image_intrinsics,
     measure_planes,
     roll_margins,
 )
@@ -62,16 +63,18 @@ def tensors(arrays: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
             torch.from_numpy(arrays["intrinsics"]))
 
 
-def whole_heights(arrays: dict) -> torch.Tensor:
-    """``heights_along_rays`` over every pixel of the whole images."""
-    depth, valid, intrinsics = tensors(arrays)
+def whole_heights(arrays: dict, norm: dict) -> torch.Tensor:
+    """``heights_along_rays`` over every pixel of the whole images, with the camera ``norm``
+    says the heights use."""
+    depth, valid, _ = tensors(arrays)
     n, h, w = depth.shape
     v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32),
                           torch.arange(w, dtype=torch.float32), indexing="ij")
     return heights_along_rays(depth, valid > 0, u.expand(n, h, w), v.expand(n, h, w), (w, h),
                               torch.from_numpy(arrays[PLANE_NORMAL_KEY]),
-                              torch.from_numpy(arrays[PLANE_OFFSET_KEY]), intrinsics,
-                              NORM["focal_over_width"])
+                              torch.from_numpy(arrays[PLANE_OFFSET_KEY]),
+                              image_intrinsics(arrays, slice(None), norm),
+                              norm["focal_over_width"])
 
 
 @pytest.mark.parametrize("norm", [NORM, check_normalisation(DEFAULT_NORMALISATION)],
@@ -81,12 +84,7 @@ def test_heights_along_the_rays_are_the_whole_images_height_channel(norm):
     measure_planes(arrays, norm)
     depth, valid, intrinsics = tensors(arrays)
     fitted = network_input(depth, valid, norm, intrinsics)
-    height = whole_heights(arrays) if norm is NORM else heights_along_rays(
-        depth, valid > 0, *torch.meshgrid(torch.arange(160.0), torch.arange(120.0),
-                                          indexing="xy"), (160, 120),
-        torch.from_numpy(arrays[PLANE_NORMAL_KEY]), torch.from_numpy(arrays[PLANE_OFFSET_KEY]),
-        None, norm["focal_over_width"])
-    given = network_input(depth, valid, norm, height_m=height)
+    given = network_input(depth, valid, norm, height_m=whole_heights(arrays, norm))
     assert torch.equal(fitted[:, :2], given[:, :2])
     assert (fitted[:, 2] - given[:, 2]).abs().max() < 1e-5
     box = torch.from_numpy(arrays["labels"] == 2)
