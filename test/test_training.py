@@ -130,7 +130,8 @@ def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():
 
 
 def test_augmentation_keeps_labels_and_redraws_noise_at_the_sensors_level():
-    from training.train import SENSOR_NOISE_PER_Z2, augment
+    from training.redrawn_noise import SENSOR_NOISE_PER_Z2
+    from training.train import augment
 
     gen = torch.Generator().manual_seed(0)
     depth = torch.full((64, 120, 160), 2.0)

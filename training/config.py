@@ -785,7 +785,7 @@ class TrainConfig:
     small_outcome_weight: float = 1.0
     augment: bool = True
     # Re-drawn axial noise per training image: U(0, aug_noise) x the sensor's own noise at the
-    # working size (train.SENSOR_NOISE_PER_Z2). Before model 0.1.5 it was ~7x the sensor's.
+    # working size (redrawn_noise.SENSOR_NOISE_PER_Z2). Before model 0.1.5 it was ~7x the sensor's.
     aug_noise: float = 1.0
     # Share of training images that lose their depth over large smooth regions, up to 35 % of
     # the image (holes.no_return_holes: real frames lose whole surfaces, our sensor models

@@ -23,9 +23,10 @@ import numpy as np
 import torch
 
 from task_outcome_ros.floor import backproject, pixel_rays, support_plane
-from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE, REFERENCE_PIXELS
+from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE
 from task_outcome_ros.model import INTRINSICS_FROM_CAMERA_INFO, network_input
 from training.holes import no_return_holes
+from training.redrawn_noise import axial_noise, drop_pixels, noise_levels
 from training.roll import draw_roll, roll_images, roll_sources
 
 PLANE_NORMAL_KEY, PLANE_OFFSET_KEY = "plane_normal", "plane_offset"
@@ -131,12 +132,10 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     cached image ``idx``, augmented as ``train.augment`` augments whole images: turned as by
     a camera rolled U(-``roll_deg``, ``roll_deg``) more (``roll.roll_images``, about the
     crop's centre), re-drawn axial noise of U(0, ``noise_level``) times the sensor's at the
-    cache's working size (``train.SENSOR_NOISE_PER_Z2``), 0-3 % of pixels dropped, ``holes``
+    cache's working size (``redrawn_noise.noise_levels``), 0-3 % of pixels dropped, ``holes``
     of the crops losing depth in blobs (``holes.no_return_holes``), mirrored half the time.
     The heights come last, from the augmented depths (module docstring). ``arrays`` must
     hold ``measure_planes``' answers."""
-    from training.train import SENSOR_NOISE_PER_Z2  # train imports this module
-
     idx = np.asarray(idx)
     n, (cw, ch) = len(idx), crop
     full_h, full_w = arrays["depth"].shape[1:]
@@ -160,11 +159,9 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     depth, valid, labels, u, v = (t[inner] for t in (depth, valid, labels, u, v))
     u = u + torch.from_numpy(corners[:, 0]).float()[:, None, None]
     v = v + torch.from_numpy(corners[:, 1]).float()[:, None, None]
-    per_pixel = SENSOR_NOISE_PER_Z2 * math.sqrt(full_h * full_w / REFERENCE_PIXELS)
-    level = per_pixel * noise_level * torch.rand(n, 1, 1, generator=gen)
-    depth = depth + torch.randn(depth.shape, generator=gen) * level * depth ** 2
-    drop = torch.rand(depth.shape, generator=gen) < 0.03 * torch.rand(n, 1, 1, generator=gen)
-    valid = torch.where(drop, torch.zeros_like(valid), valid)
+    level = noise_levels(n, (full_h, full_w), noise_level, gen)
+    depth = depth + axial_noise(depth, level, gen)
+    valid = drop_pixels(valid, gen)
     if holes > 0:
         gone = no_return_holes(depth.shape, holes, gen)
         valid = torch.where(gone, torch.zeros_like(valid), valid)

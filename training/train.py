@@ -72,16 +72,11 @@ from training.losses import (
     object_balance_weights,
     outcome_lovasz_loss,
 )
+from training.redrawn_noise import axial_noise, drop_pixels, noise_levels
 from training.roll import draw_roll, measure_images, roll_images
 from training.size_recall import SMALL_OUTCOME_PIXELS
 
 WARMUP_FRACTION = 0.03
-# The sensor's axial noise per 640 x 480 pixel, as sd / z^2 (robust sd of noisy - clean depth
-# over 15 validation renders: 5.3 / 8.1 / 12.0 / 16.1 mm at 1.75 / 2.25 / 2.75 / 3.25 m).
-# Area-averaging k pixels into one working pixel divides it by sqrt(k): 0.0004 z^2 at
-# 160 x 120, which the same renders confirm (1.3-4.0 mm). Re-drawn augmentation noise is
-# scaled from this, so training inputs stay as noisy as the ones the network will see.
-SENSOR_NOISE_PER_Z2 = 0.0016
 
 
 # The default task's sensor (training/config.NoiseConfig defaults), which the figure above
@@ -209,15 +204,11 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     scale = 1.0 + 0.08 * (torch.rand(n, 1, 1, generator=gen) - 0.5)
     if intrinsics is not None:
         scale = torch.ones_like(scale)  # drawn all the same: the random stream stays aligned
-    per_pixel = SENSOR_NOISE_PER_Z2 * math.sqrt(depth.shape[1] * depth.shape[2] / REFERENCE_PIXELS)
-    level = per_pixel * noise_level * torch.rand(n, 1, 1, generator=gen)
-    depth = depth * scale + torch.randn(depth.shape, generator=gen) * level * depth ** 2
-    # Extra dropout: 0-3 % of pixels lose their depth (labels kept: the net must infer them).
-    drop = torch.rand(depth.shape, generator=gen) < 0.03 * torch.rand(n, 1, 1, generator=gen)
-    valid = torch.where(drop, torch.zeros_like(valid), valid)
+    level = noise_levels(n, depth.shape[1:], noise_level, gen)
+    depth = depth * scale + axial_noise(depth, level, gen)
+    valid = drop_pixels(valid, gen)
     if nearest is not None:
-        nearest = (nearest * scale
-                   + torch.randn(nearest.shape, generator=gen) * level * nearest ** 2)
+        nearest = nearest * scale + axial_noise(nearest, level, gen)
     if holes > 0:
         gone = no_return_holes(depth.shape, holes, gen)
         valid = torch.where(gone, torch.zeros_like(valid), valid)
