@@ -25,7 +25,7 @@ import torch
 from task_outcome_ros.floor import backproject, pixel_rays, support_plane
 from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE
 from task_outcome_ros.model import INTRINSICS_FROM_CAMERA_INFO, network_input
-from training.holes import no_return_holes
+from training.holes import punch_holes
 from training.redrawn_noise import axial_noise, drop_pixels, noise_levels
 from training.roll import draw_roll, roll_images, roll_sources
 
@@ -133,7 +133,7 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     a camera rolled U(-``roll_deg``, ``roll_deg``) more (``roll.roll_images``, about the
     crop's centre), re-drawn axial noise of U(0, ``noise_level``) times the sensor's at the
     cache's working size (``redrawn_noise.noise_levels``), 0-3 % of pixels dropped, ``holes``
-    of the crops losing depth in blobs (``holes.no_return_holes``), mirrored half the time.
+    of the crops losing depth in blobs (``holes.punch_holes``), mirrored half the time.
     The heights come last, from the augmented depths (module docstring). ``arrays`` must
     hold ``measure_planes``' answers."""
     idx = np.asarray(idx)
@@ -163,9 +163,7 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     depth = depth + axial_noise(depth, level, gen)
     valid = drop_pixels(valid, gen)
     if holes > 0:
-        gone = no_return_holes(depth.shape, holes, gen)
-        valid = torch.where(gone, torch.zeros_like(valid), valid)
-        labels = torch.where(gone, torch.full_like(labels, IGNORE), labels)
+        valid, labels = punch_holes(valid, labels, holes, gen)
     height = heights_along_rays(depth, valid > 1e-6, u, v, (full_w, full_h),
                                 torch.from_numpy(arrays[PLANE_NORMAL_KEY][idx]),
                                 torch.from_numpy(arrays[PLANE_OFFSET_KEY][idx]),

@@ -51,6 +51,15 @@ def no_return_holes(shape: tuple[int, int, int], share: float, gen: torch.Genera
     return above_share(field, cover) & has_holes[:, None, None]
 
 
+def punch_holes(valid: torch.Tensor, labels: torch.Tensor, share: float, gen: torch.Generator
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``valid`` and ``labels`` (N, h, w) with ``no_return_holes`` punched in ``share`` of the
+    images: no depth there, labels ignored (nothing tells the network what lies there)."""
+    gone = no_return_holes(valid.shape, share, gen)
+    return (torch.where(gone, torch.zeros_like(valid), valid),
+            torch.where(gone, torch.full_like(labels, IGNORE), labels))
+
+
 def lose_depth(depth: np.ndarray, labels: np.ndarray, share: float, seed: int
                ) -> tuple[np.ndarray, np.ndarray]:
     """A rendered frame (depth with NaN invalid, labels with IGNORE there) with ``share`` of

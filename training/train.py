@@ -66,7 +66,7 @@ from training.config import (
 from training.crops import crop_batch, measure_planes
 from training.dataset import load_cache, load_manifest, manifest_table
 from training.hard_cases import episode_hard_cases
-from training.holes import no_return_holes
+from training.holes import punch_holes
 from training.losses import (
     OBJECT_BALANCE_MAX_WEIGHT,
     object_balance_weights,
@@ -210,9 +210,7 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     if nearest is not None:
         nearest = nearest * scale + axial_noise(nearest, level, gen)
     if holes > 0:
-        gone = no_return_holes(depth.shape, holes, gen)
-        valid = torch.where(gone, torch.zeros_like(valid), valid)
-        labels = torch.where(gone, torch.full_like(labels, IGNORE), labels)
+        valid, labels = punch_holes(valid, labels, holes, gen)
     return Batch(depth, valid, labels, intrinsics, nearest)
 
 
