@@ -3,6 +3,7 @@
     python bench/inference.py                 # 300 timed frames per configuration (~1-3 min)
     python bench/inference.py --frames 500
     python bench/inference.py --quick         # a smoke run (~20 s)
+    python bench/inference.py --model shelf   # another shipped model, on its own run's frames
 
 The four configurations (backend torch/onnx x threads 1/2) run interleaved in short blocks, in
 a rotating order, so a change in machine load hits them all alike; ``paired_ratio`` compares
@@ -13,7 +14,8 @@ A random-init model labels everything background, so its post stage (fragments, 
 presence, connected components: ``OutcomeSegmenter.postprocess``) is also timed on the
 dataset's ground-truth labels at the working size, which is what a trained model would produce.
 
-Writes the ``inference`` section of bench/results.json.
+Writes the ``inference`` section of bench/results.json (``inference.<name>`` for
+``--model <name>``).
 """
 
 from __future__ import annotations
@@ -38,12 +40,13 @@ SIZE = (640, 480)  # (W, H)
 
 # ---- shared with bench/node.py -------------------------------------------------------------
 
-def prepare_model(tmp: Path) -> tuple[Path, str]:
+def prepare_model(tmp: Path, shipped: Path | None = None) -> tuple[Path, str]:
     """(checkpoint path with a matching .onnx beside it, description of where it came from).
 
-    The shipped checkpoint when there is one (copied to ``tmp`` and exported there if its ONNX
-    file is missing or stale; the package folder is never written), else a random-init
-    checkpoint of the default architecture: same compute cost, meaningless labels.
+    The shipped checkpoint ``shipped`` (default: the default task's) when there is one (copied
+    to ``tmp`` and exported there if its ONNX file is missing or stale; the package folder is
+    never written), else a random-init checkpoint of the default architecture: same compute
+    cost, meaningless labels.
     """
     from task_outcome_ros.checkpoint import file_sha256
     from task_outcome_ros.inference import default_model_path
@@ -54,7 +57,7 @@ def prepare_model(tmp: Path) -> tuple[Path, str]:
         read_metadata,
     )
 
-    shipped = default_model_path()
+    shipped = default_model_path() if shipped is None else shipped
     if shipped.is_file():
         onnx = onnx_path_for(shipped)
         try:
@@ -137,21 +140,22 @@ def synth_frame(rng: np.random.Generator) -> np.ndarray:
     return depth.astype(np.float32)
 
 
-def load_frames(n: int) -> tuple[list[np.ndarray], list[np.ndarray | None], list, str]:
+def load_frames(n: int, run_dir: Path = RUN_DIR
+                ) -> tuple[list[np.ndarray], list[np.ndarray | None], list, str]:
     """``n`` 640 x 480 float32 depth frames, their true labels and cameras (``Intrinsics``, what
-    camera_info carries) when they come from the dataset run, else None each, and what they
-    are."""
-    if (RUN_DIR / "manifest.json").is_file():
+    camera_info carries) when they come from the dataset run ``run_dir``, else None each, and
+    what they are."""
+    if (run_dir / "manifest.json").is_file():
         import json
 
         from task_outcome_ros.camera import Intrinsics
         from training.render import read_pair
 
-        images = json.loads((RUN_DIR / "manifest.json").read_text())["images"]
+        images = json.loads((run_dir / "manifest.json").read_text())["images"]
         depths, labels, cameras = [], [], []
         for index in np.linspace(0, len(images) - 1, n).astype(int):
             try:
-                d, lab = read_pair(RUN_DIR, int(images[index]["episode"]))
+                d, lab = read_pair(run_dir, int(images[index]["episode"]))
             except (ValueError, OSError):
                 continue
             if d.shape == (SIZE[1], SIZE[0]):
@@ -160,7 +164,7 @@ def load_frames(n: int) -> tuple[list[np.ndarray], list[np.ndarray | None], list
                 cameras.append(Intrinsics.from_record(images[index]["camera"]))
         if len(depths) >= max(1, n // 2):
             return (depths, labels, cameras,
-                    f"{len(depths)} images of {RUN_DIR} (training.render.read_pair), with "
+                    f"{len(depths)} images of {run_dir} (training.render.read_pair), with "
                     "their camera_info")
     rng = np.random.default_rng(0)
     return ([synth_frame(rng) for _ in range(n)], [None] * n, [None] * n,
@@ -200,6 +204,9 @@ def main() -> None:
     parser.add_argument("--images", type=int, default=50, help="distinct frames to cycle through")
     parser.add_argument("--threads", default="1,2", help="comma-separated thread counts")
     parser.add_argument("--quick", action="store_true", help="smoke run: 60 frames, 20 images")
+    parser.add_argument("--model", default="default",
+                        help="a shipped model's name (default: %(default)s); its frames come "
+                             "from runs/<name>, else synthetic ones")
     args = parser.parse_args()
     if args.quick:
         args.frames, args.images, args.warmup = min(args.frames, 60), min(args.images, 20), 5
@@ -209,13 +216,16 @@ def main() -> None:
     import onnxruntime
     import torch
 
-    from task_outcome_ros.inference import OutcomeSegmenter
+    from task_outcome_ros.inference import OutcomeSegmenter, resolve_model_path
 
+    default = args.model == "default"
+    shipped = resolve_model_path(None if default else args.model)
     threads = [int(t) for t in args.threads.split(",")]
     load_start = load_average()
-    frames, true_labels, cameras, frames_desc = load_frames(args.images)
+    frames, true_labels, cameras, frames_desc = load_frames(
+        args.images, RUN_DIR if default else REPO / "runs" / args.model)
     with tempfile.TemporaryDirectory(prefix="bench_inference_") as tmp:
-        model_path, model_desc = prepare_model(Path(tmp))
+        model_path, model_desc = prepare_model(Path(tmp), shipped)
         configs = [(b, t) for t in threads for b in ("torch", "onnx")]
         segs = {}
         for backend, n in configs:
@@ -303,8 +313,9 @@ def main() -> None:
             a, z = results[f"{b}_threads{threads[0]}"], results[f"{b}_threads{threads[-1]}"]
             ratios[f"{b}_threads{threads[0]}_over_threads{threads[-1]}_p50"] = round(
                 a["segment_ms"]["p50"] / z["segment_ms"]["p50"], 2)
-    record("inference", {
+    record("inference" if default else f"inference.{args.model}", {
         "model": model_desc, "frames": frames_desc, "frame_size": list(SIZE),
+        "working_size": list(segs[configs[0]].input_size),
         "timed_frames_per_config": len(total[configs[0]]), "block": args.block,
         "warmup_per_config": args.warmup, "quick": args.quick, "wall_s": round(wall, 1),
         "load_average_1_5_15": {"start": load_start, "end": load_average()},
@@ -320,7 +331,7 @@ def main() -> None:
                  "configurations interleaved in rotating blocks; the machine is shared (see "
                  "load_average_1_5_15), so absolute figures are noisy, ratios within the run "
                  "less so"),
-    }, command)
+    }, command, model=shipped)
 
 
 if __name__ == "__main__":

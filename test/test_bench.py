@@ -44,6 +44,7 @@ def _run(script: str, results: Path, *args: str) -> dict:
     ("train_step.py", ("--quick",), "training", 4),                    # --quick: 4 steps
     ("roll_step.py", ("--quick",), "roll_step", 4),                    # --quick: 4 batches
     ("train_step.py", ("--quick", "--model", "tote"), "training.tote", 4),  # its 4 channels
+    ("inference.py", ("--quick", "--threads", "1", "--model", "shelf"), "inference.shelf", 60),
 ])
 def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, section, timed):
     results = tmp_path / "results.json"
@@ -56,8 +57,9 @@ def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, secti
     assert timings and all(t["n"] == timed and t["min"] > 0.1 for t in timings)
     # Provenance instead of machine paths: the revision measured and the model's hash.
     assert report["git_revision"] and len(report["git_revision"].split("+")[0]) == 12
+    task = section.partition(".")[2]  # "inference.shelf": the shelf model was measured
     shipped = REPO / "task_outcome_ros" / "models" / (
-        "outcome_fcn_tote.pt" if section.endswith(".tote") else "outcome_fcn.pt")
+        f"outcome_fcn_{task}.pt" if task else "outcome_fcn.pt")
     assert report["shipped_model_sha256"] == hashlib.sha256(shipped.read_bytes()).hexdigest()
     text = results.read_text()
     assert str(REPO) not in text and sys.prefix not in text
@@ -65,6 +67,8 @@ def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, secti
         assert report["model_args"]["in_channels"] == 4
         assert report["normalisation"]["relief_window_px"] == 15
         assert report["augment"]["holes"] == 0.5
+    if section == "inference.shelf":  # its own working size, not the default model's
+        assert report["working_size"] == [320, 240]
 
 
 def test_measured_results_hold_no_machine_paths():
