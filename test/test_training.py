@@ -118,6 +118,24 @@ def test_train_config_validation_names_the_field():
     assert not {"space_to_depth", "full_size_head"} & set(TrainConfig().model_args)
 
 
+
+def test_the_networks_width_and_depth_come_from_the_command_line():
+    from task_outcome_ros.model import build_model
+    from training.__main__ import build_parser, resolve_train_config
+
+    args = build_parser().parse_args(["train", "--base-width", "4", "--levels", "6",
+                                      "--input-size", "320", "240"])
+    config = resolve_train_config(args)
+    assert (config.model_args["base_width"], config.model_args["levels"]) == (4, 6)
+    model = build_model(config.model_args).eval()
+    assert model.stride == 64
+    with torch.no_grad():  # 240 rows are padded to 256 and cropped back
+        assert model(torch.zeros(1, 3, 240, 320)).shape == (1, 5, 240, 320)
+    defaults = resolve_train_config(build_parser().parse_args(["train"])).model_args
+    assert (defaults["base_width"], defaults["levels"]) == (8, 5)
+    with pytest.raises(ConfigError, match="train.levels"):
+        TrainConfig(levels=7).validate()
+
 def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():
     from training.train import epoch_order
 

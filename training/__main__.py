@@ -136,7 +136,12 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--epochs", type=positive_int, default=None, help="training epochs")
     p.add_argument("--batch-size", type=positive_int, default=None)
     p.add_argument("--lr", type=float, default=None)
-    p.add_argument("--base-width", type=positive_int, default=None, help="FCN width")
+    p.add_argument("--base-width", type=positive_int, default=None,
+                   help="FCN width of the first level (default 8)")
+    p.add_argument("--levels", type=positive_int, default=None,
+                   help="FCN stride-2 stages (default 5); one more with half the --base-width "
+                        "gives a twice-finer --input-size a thin full-size level for about "
+                        "1.3x the network cost")
     p.add_argument("--space-to-depth", type=positive_int, default=None,
                    help="2: fold 2 x 2 input pixels into channels, run the convs at half "
                         "the working size and upsample the logits back: a twice-finer "
@@ -227,7 +232,8 @@ def resolve_train_config(args: argparse.Namespace):
     from training.config import TrainConfig
 
     fields = {"epochs": "epochs", "batch_size": "batch_size", "lr": "lr",
-              "base_width": "base_width", "max_minutes": "max_minutes", "device": "device",
+              "base_width": "base_width", "levels": "levels", "max_minutes": "max_minutes",
+              "device": "device",
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
               "channels_last": "channels_last", "near_boundary_weight": "near_boundary_weight",
               "small_outcome_weight": "small_outcome_weight",
