@@ -108,6 +108,7 @@ DEFAULT_MODEL_ARGS: dict[str, Any] = {
     "in_channels": IN_CHANNELS, "num_classes": DEFAULT_TABLE.num_classes, "base_width": 8,
     "levels": 5, "decoder_convs": 1, "max_width": 128}  # no fold, no full-size head
 FULL_SIZE_HEAD_MAX = 32  # channels of OutcomeFCN's optional full-size head
+HEAD_WIDTH_MAX = 64  # channels of OutcomeFCN's last decoder block when widened (head_width)
 
 
 def check_normalisation(norm: dict[str, Any]) -> dict[str, Any]:
@@ -591,6 +592,12 @@ class OutcomeFCN(nn.Module):
     averages away. Neither use (finer input, or a cheaper network at the same input) has beaten
     the plain network in an hour of training (docs/experiments.md); no shipped model uses it.
 
+    ``head_width`` = k > ``base_width`` widens the last decoder block to k channels, so that the
+    1x1 head reads k features a pixel. Why: the head separates ``num_classes`` outcomes with one
+    linear map of the last block's ReLU features; at ``base_width`` 4 (a thin first level at a
+    finer working size) two training runs with five classes each never predicted one class
+    (docs/experiments.md). 0 = ``base_width``.
+
     ``full_size_head`` = k > 0 (with ``space_to_depth`` > 1) gives the folded network a thin
     head at the input size: one 3x3 conv of k channels on the unfolded input, concatenated with
     the decoder's last features upsampled by a 2x2 transposed conv to k channels, and a 1x1
@@ -605,7 +612,7 @@ class OutcomeFCN(nn.Module):
                  num_classes: int = DEFAULT_TABLE.num_classes, base_width: int = 8,
                  levels: int = 4, decoder_convs: int = 1,
                  max_width: int | None = None, space_to_depth: int = 1,
-                 full_size_head: int = 0) -> None:
+                 full_size_head: int = 0, head_width: int = 0) -> None:
         super().__init__()
         if not (1 <= levels <= 6 and 2 <= base_width <= 256 and 1 <= decoder_convs <= 2
                 and (max_width is None or max_width >= base_width)
@@ -621,6 +628,12 @@ class OutcomeFCN(nn.Module):
             raise ValueError(f"full_size_head must be an int in [0, {FULL_SIZE_HEAD_MAX}], and "
                              f"0 without space_to_depth (nothing to refine), got "
                              f"{full_size_head!r} with space_to_depth={space_to_depth}")
+        if not (isinstance(head_width, int) and not isinstance(head_width, bool)
+                and (head_width == 0 or base_width < head_width <= HEAD_WIDTH_MAX)
+                and not (head_width and full_size_head)):
+            raise ValueError(f"head_width must be 0 or an int in (base_width, {HEAD_WIDTH_MAX}] "
+                             f"without a full_size_head, got {head_width!r} with "
+                             f"base_width={base_width} full_size_head={full_size_head}")
         self.levels = levels
         self.space_to_depth = space_to_depth
         cap = max_width or base_width * 2 ** levels
@@ -629,8 +642,9 @@ class OutcomeFCN(nn.Module):
         self.down = nn.ModuleList(_conv_block(widths[i], widths[i + 1]) for i in range(levels))
         self.up = nn.ModuleList(
             nn.ConvTranspose2d(widths[i + 1], widths[i], 2, stride=2) for i in range(levels))
-        self.fuse = nn.ModuleList(_conv_block(2 * widths[i], widths[i], decoder_convs)
-                                  for i in range(levels))
+        last = head_width or widths[0]   # the last decoder block's width, read by the head
+        self.fuse = nn.ModuleList(_conv_block(2 * widths[i], last if i == 0 else widths[i],
+                                              decoder_convs) for i in range(levels))
         self.full_size_head = full_size_head
         if full_size_head:
             k = full_size_head
@@ -641,7 +655,7 @@ class OutcomeFCN(nn.Module):
             # already gives each full-size pixel its neighbours.
             self.fine_fuse = nn.Sequential(nn.Conv2d(2 * k, k, 1, bias=False),
                                            nn.BatchNorm2d(k), nn.ReLU(inplace=True))
-        self.head = nn.Conv2d(full_size_head or widths[0], num_classes, 1)
+        self.head = nn.Conv2d(full_size_head or last, num_classes, 1)
 
     @property
     def stride(self) -> int:

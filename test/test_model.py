@@ -93,10 +93,23 @@ def test_build_model_from_default_args() -> None:
 @pytest.mark.parametrize("kwargs", [{"levels": 0}, {"base_width": 1}, {"decoder_convs": 3},
                                     {"space_to_depth": 3}, {"full_size_head": 4},
                                     {"space_to_depth": 2, "full_size_head": 33},
-                                    {"space_to_depth": 2, "full_size_head": -1}])
+                                    {"space_to_depth": 2, "full_size_head": -1},
+                                    {"base_width": 8, "head_width": 8}, {"head_width": 65},
+                                    {"head_width": True},
+                                    {"space_to_depth": 2, "full_size_head": 4, "head_width": 16}])
 def test_bad_constructor_args(kwargs: dict) -> None:
     with pytest.raises(ValueError):
         OutcomeFCN(**kwargs)
+
+
+def test_head_width_widens_only_the_last_block_the_head_reads() -> None:
+    thin = OutcomeFCN(base_width=4, levels=3, head_width=8).eval()
+    assert thin.head.in_channels == 8 and thin.stem[0].out_channels == 4
+    plain = OutcomeFCN(base_width=4, levels=3).eval()
+    assert plain.head.in_channels == 4
+    x = torch.randn(1, IN_CHANNELS, 48, 40)
+    with torch.no_grad():
+        assert thin(x).shape == plain(x).shape == (1, DEFAULT_TABLE.num_classes, 48, 40)
 
 
 def test_preprocess_normalisation_and_validity() -> None:

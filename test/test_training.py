@@ -135,6 +135,12 @@ def test_the_networks_width_and_depth_come_from_the_command_line():
     assert (defaults["base_width"], defaults["levels"]) == (8, 5)
     with pytest.raises(ConfigError, match="train.levels"):
         TrainConfig(levels=7).validate()
+    wide = resolve_train_config(build_parser().parse_args(
+        ["train", "--base-width", "4", "--levels", "6", "--head-width", "8"]))
+    assert build_model(wide.model_args).head.in_channels == 8
+    assert "head_width" not in defaults   # unused: older runtimes still build the network
+    with pytest.raises(ConfigError, match="train.head_width = 4 must exceed base_width"):
+        TrainConfig(base_width=4, head_width=4).validate()
 
 def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():
     from training.train import epoch_order

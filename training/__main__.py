@@ -142,6 +142,9 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help="FCN stride-2 stages (default 5); one more with half the --base-width "
                         "gives a twice-finer --input-size a thin full-size level for about "
                         "1.3x the network cost")
+    p.add_argument("--head-width", type=int, default=None, metavar="CHANNELS",
+                   help="channels of the last decoder block, which the 1x1 head reads (default "
+                        "0: --base-width); for a --base-width under the task's class count")
     p.add_argument("--space-to-depth", type=positive_int, default=None,
                    help="2: fold 2 x 2 input pixels into channels, run the convs at half "
                         "the working size and upsample the logits back: a twice-finer "
@@ -247,7 +250,7 @@ def resolve_train_config(args: argparse.Namespace):
               "nearest_height": "nearest_height",
               "relief_beneath_support": "relief_beneath_support",
               "camera_intrinsics": "camera_intrinsics", "space_to_depth": "space_to_depth",
-              "full_size_head": "full_size_head"}
+              "full_size_head": "full_size_head", "head_width": "head_width"}
     overrides = {k: getattr(args, a) for k, a in fields.items() if getattr(args, a) is not None}
     if args.input_size is not None:
         overrides["input_size"] = tuple(args.input_size)

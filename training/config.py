@@ -723,7 +723,7 @@ def load_json(path: Path) -> Any:
 # Network options added after the first models, with the value that means "not used" (what
 # every run before them had): left out of model_args when unused, and not a difference when a
 # run saved before them resumes (train.ADDED_TRAIN_FIELDS).
-LATER_NETWORK_OPTIONS = {"space_to_depth": 1, "full_size_head": 0}
+LATER_NETWORK_OPTIONS = {"space_to_depth": 1, "full_size_head": 0, "head_width": 0}
 
 
 def _check_relief_option(owner: str, name: str, value: Any, check, relief_window_px: int | None,
@@ -759,6 +759,9 @@ class TrainConfig:
     # Channels of a thin head at the working size for a folded network (model.OutcomeFCN):
     # boundaries from full-size evidence instead of upsampled logits; 0 = none.
     full_size_head: int = 0
+    # Channels of the last decoder block, which the 1x1 head reads (model.OutcomeFCN); 0 =
+    # base_width. For a thin first level (base_width under the class count).
+    head_width: int = 0
     # Tote model 0.6.0: 13 epochs of 19,000 images, 47 min on 2 cores in bf16 (0.37 s a step
     # in the loop). In fp32 a step takes about 1.05 s, and the schedule is fitted to
     # max_minutes after the first epoch (train.fitted_epochs): about 5 epochs of 19,000
@@ -873,6 +876,11 @@ class TrainConfig:
         if self.full_size_head and self.space_to_depth == 1:
             raise ConfigError(f"{o}.full_size_head = {self.full_size_head} needs "
                               "space_to_depth 2: an unfolded network already works at full size")
+        # 64 = model.HEAD_WIDTH_MAX, repeated for the same reason.
+        _check_int(o, "head_width", self.head_width, 0, 64)
+        if self.head_width and (self.head_width <= self.base_width or self.full_size_head):
+            raise ConfigError(f"{o}.head_width = {self.head_width} must exceed base_width "
+                              f"({self.base_width}) and cannot join a full_size_head")
         _check_int(o, "epochs", self.epochs, 1, 10_000)
         _check_int(o, "batch_size", self.batch_size, 1, 4096)
         _check_range(o, "lr", self.lr, 1e-6, 1.0)
