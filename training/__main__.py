@@ -139,9 +139,7 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--base-width", type=positive_int, default=None,
                    help="FCN width of the first level (default 8)")
     p.add_argument("--levels", type=positive_int, default=None,
-                   help="FCN stride-2 stages (default 5); one more with half the --base-width "
-                        "gives a twice-finer --input-size a thin full-size level for about "
-                        "1.3x the network cost")
+                   help="FCN stride-2 stages (default 5)")
     p.add_argument("--head-width", type=int, default=None, metavar="CHANNELS",
                    help="channels of the last decoder block, which the 1x1 head reads (default "
                         "0: --base-width); for a --base-width under the task's class count")
