@@ -118,7 +118,6 @@ def test_train_config_validation_names_the_field():
     assert not {"space_to_depth", "full_size_head"} & set(TrainConfig().model_args)
 
 
-
 def test_the_networks_width_and_depth_come_from_the_command_line():
     from task_outcome_ros.model import build_model
     from training.__main__ import build_parser, resolve_train_config
@@ -141,6 +140,7 @@ def test_the_networks_width_and_depth_come_from_the_command_line():
     assert "head_width" not in defaults   # unused: older runtimes still build the network
     with pytest.raises(ConfigError, match="train.head_width = 4 must exceed base_width"):
         TrainConfig(base_width=4, head_width=4).validate()
+
 
 def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():
     from training.train import epoch_order
