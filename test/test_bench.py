@@ -71,6 +71,19 @@ def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, secti
         assert report["working_size"] == [320, 240]
 
 
+def test_quick_network_bench_times_every_architecture_it_names(tmp_path):
+    report = _run("networks.py", tmp_path / "results.json", "--quick")["networks"]
+    assert report["command"] == "python bench/networks.py --quick"
+    networks = _bench_module("networks").NETWORKS
+    assert list(report["configs"]) == list(networks)
+    for name, config in report["configs"].items():
+        assert config["network_ms"]["n"] == 2 * 3 and config["network_ms"]["min"] > 0.1
+        assert config["input_size"] == list(networks[name][1])
+        assert config["parameters"] > 100_000
+    first = report["configs"][next(iter(networks))]
+    assert first["ratio_to_first"] == 1.0 and first["input_size"] == [160, 120]
+
+
 def test_measured_results_hold_no_machine_paths():
     """bench/results.json is tracked: it says runs/default, not where one machine keeps it."""
     text = (BENCH / "results.json").read_text()
