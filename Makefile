@@ -65,6 +65,7 @@ ship: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/inference.py
+	$(PY) bench/networks.py
 	$(PY) bench/train_step.py
 	$(PY) bench/node.py
 
