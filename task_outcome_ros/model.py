@@ -595,8 +595,8 @@ class OutcomeFCN(nn.Module):
     ``head_width`` = k > ``base_width`` widens the last decoder block to k channels, so that the
     1x1 head reads k features a pixel. Why: the head separates ``num_classes`` outcomes with one
     linear map of the last block's ReLU features; at ``base_width`` 4 (a thin first level at a
-    finer working size) two training runs with five classes each predicted no pixel of one
-    class in three epochs (docs/experiments.md). 0 = ``base_width``.
+    finer working size) two training runs with five classes each scored IoU 0 on one class
+    at their third epoch (docs/experiments.md). 0 = ``base_width``.
 
     ``full_size_head`` = k > 0 (with ``space_to_depth`` > 1) gives the folded network a thin
     head at the input size: one 3x3 conv of k channels on the unfolded input, concatenated with
