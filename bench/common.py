@@ -9,6 +9,7 @@ import platform
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +43,13 @@ def percentiles(values: list[float]) -> dict:
     return {"n": int(a.size), "p50": round(float(np.percentile(a, 50)), 2),
             "p95": round(float(np.percentile(a, 95)), 2), "mean": round(float(a.mean()), 2),
             "min": round(float(a.min()), 2)}
+
+
+def rotated(items: Sequence, r: int) -> Sequence:
+    """``items`` in round ``r``'s order: rotated by ``r``, so that over the rounds each comes
+    first as often, and a change in machine load hits every configuration alike."""
+    k = r % len(items)
+    return items[k:] + items[:k]
 
 
 def git_revision() -> str | None:

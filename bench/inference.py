@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import percentiles, record  # noqa: E402
+from common import percentiles, record, rotated  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RUN_DIR = REPO / "runs" / "default"
@@ -251,8 +251,7 @@ def main() -> None:
         start = time.perf_counter()
         k = 0
         for r in range(rounds):
-            order = configs[r % len(configs):] + configs[:r % len(configs)]  # rotate
-            for cfg in order:
+            for cfg in rotated(configs, r):
                 seg = use(*cfg)
                 block = []
                 for _ in range(args.block):

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import cached_training_images, percentiles, record  # noqa: E402
+from common import cached_training_images, percentiles, record, rotated  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -147,8 +147,7 @@ def main() -> None:
             values.clear()
     started = time.perf_counter()
     for r in range(0, steps, block):
-        order = configs[r // block % len(configs):] + configs[:r // block % len(configs)]
-        for config in order:
+        for config in rotated(configs, r // block):
             for _ in range(min(block, steps - r)):
                 one_step(config)
     wall = time.perf_counter() - started

@@ -127,6 +127,20 @@ def resolve_model_path(model: str | Path | None) -> Path:
 
 
 @torch.inference_mode()
+def onnx_session(onnx_path: str | Path, num_threads: int | None = None):
+    """The ONNX Runtime session the node runs an export in: every graph optimisation, the
+    CPU provider, ``num_threads`` intra-op threads (None: ONNX Runtime's choice), one
+    inter-op thread. ``onnxruntime`` must be installed."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    if num_threads is not None:
+        opts.intra_op_num_threads = int(num_threads)
+    opts.inter_op_num_threads = 1
+    return ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
+
+
 def predict_labels(model: nn.Module, batch: torch.Tensor) -> torch.Tensor:
     """(N, C, h, w) preprocessed batch -> (N, h, w) uint8 class ids (argmax of the logits)."""
     if batch.dim() != 4:
@@ -254,18 +268,12 @@ class OutcomeSegmenter:
             problem = f"no ONNX file at {onnx_path}"
         else:
             try:
-                import onnxruntime as ort
+                import onnxruntime  # noqa: F401  (onnx_session opens it; is it installed?)
             except ImportError:
-                ort, problem = None, "onnxruntime is not installed"
+                problem = "onnxruntime is not installed"
         if problem is None:
-            opts = ort.SessionOptions()
-            opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-            if num_threads is not None:
-                opts.intra_op_num_threads = int(num_threads)
-            opts.inter_op_num_threads = 1
             try:
-                session = ort.InferenceSession(str(onnx_path), opts,
-                                               providers=["CPUExecutionProvider"])
+                session = onnx_session(onnx_path, num_threads)
                 meta = session_metadata(session)
             except Exception as exc:  # corrupt or unreadable ONNX file
                 meta, problem = {}, f"ONNX file {onnx_path} is unreadable: {exc}"
