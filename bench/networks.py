@@ -16,16 +16,15 @@ Writes the ``networks`` section of bench/results.json.
 from __future__ import annotations
 
 import argparse
-import io
 import sys
+import tempfile
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import percentiles, record  # noqa: E402
+from common import percentiles, record, rotated  # noqa: E402
 
 # name -> (model_args on top of the default model's, input size (W, H)). The first is the
 # reference the ratios are taken to.
@@ -39,33 +38,30 @@ NETWORKS: dict[str, tuple[dict, tuple[int, int]]] = {
 }
 
 
-def onnx_session(model_args: dict, size: tuple[int, int]):
-    """An ONNX Runtime session (1 thread, all graph optimisations, as the node's) of an
-    untrained network built from ``model_args``, and an input of ``size`` (W, H)."""
-    import onnxruntime as ort
+def exported_network(model_args: dict, size: tuple[int, int], tmp: Path):
+    """An untrained network of ``model_args`` for a working ``size`` (W, H), saved as a
+    checkpoint in ``tmp`` and exported as the package exports a shipped model; its ONNX
+    Runtime session as the node opens it (1 thread), an input, and its parameter count."""
     import torch
 
-    from task_outcome_ros.model import build_model
-    from task_outcome_ros.onnx_export import DEFAULT_OPSET
+    from task_outcome_ros import checkpoint, model
+    from task_outcome_ros.inference import onnx_session
+    from task_outcome_ros.onnx_export import export_onnx
 
-    model = build_model(model_args).eval()
+    torch.manual_seed(0)
+    net = model.build_model(model_args)
+    path = checkpoint.save(tmp / "network.pt", net, model_args=model_args, input_size=size,
+                           normalisation=dict(model.DEFAULT_NORMALISATION),
+                           train_config={}, metrics={})
+    session = onnx_session(export_onnx(path), num_threads=1)
     w, h = size
-    x = torch.zeros(1, model_args["in_channels"], h, w)
-    buf = io.BytesIO()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # tracer warnings about the padding arithmetic
-        torch.onnx.export(model, (x,), buf, input_names=["input"], output_names=["logits"],
-                          opset_version=DEFAULT_OPSET, dynamo=False)
-    opts = ort.SessionOptions()
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-    session = ort.InferenceSession(buf.getvalue(), opts, providers=["CPUExecutionProvider"])
-    rng = np.random.default_rng(0)
-    return session, rng.standard_normal((1, *x.shape[1:])).astype(np.float32)
+    x = np.random.default_rng(0).standard_normal(
+        (1, model_args["in_channels"], h, w)).astype(np.float32)
+    return session, x, model.count_parameters(net)
 
 
 def main() -> None:
-    from task_outcome_ros.model import DEFAULT_MODEL_ARGS, build_model, count_parameters
+    from task_outcome_ros.model import DEFAULT_MODEL_ARGS
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=8, help="interleaved rounds")
@@ -74,27 +70,29 @@ def main() -> None:
     args = parser.parse_args()
     if args.quick:
         args.rounds, args.runs = 2, 3
-    sessions = {}
-    for name, (extra, size) in NETWORKS.items():
-        model_args = {**DEFAULT_MODEL_ARGS, **extra}
-        session, x = onnx_session(model_args, size)
-        session.run(None, {"input": x})  # warm-up
-        sessions[name] = (session, x, model_args, size)
-    times: dict[str, list[float]] = {name: [] for name in sessions}
+    networks = {}
+    with tempfile.TemporaryDirectory(prefix="bench_networks_") as tmp:
+        for k, (name, (extra, size)) in enumerate(NETWORKS.items()):
+            model_args = {**DEFAULT_MODEL_ARGS, **extra}
+            folder = Path(tmp) / str(k)
+            folder.mkdir()
+            networks[name] = (*exported_network(model_args, size, folder), model_args, size)
+    times: dict[str, list[float]] = {name: [] for name in networks}
+    for name in networks:  # warm-up
+        session, x = networks[name][:2]
+        session.run(None, {"input": x})
     for r in range(args.rounds):
-        order = list(sessions)[r % len(sessions):] + list(sessions)[:r % len(sessions)]
-        for name in order:
-            session, x = sessions[name][:2]
+        for name in rotated(list(networks), r):
+            session, x = networks[name][:2]
             for _ in range(args.runs):
                 t0 = time.perf_counter()
                 session.run(None, {"input": x})
                 times[name].append((time.perf_counter() - t0) * 1e3)
     reference = float(np.median(times[next(iter(times))]))
     configs = {}
-    for name, (_, _, model_args, size) in sessions.items():
+    for name, (_, _, parameters, model_args, size) in networks.items():
         configs[name] = {"model_args": model_args, "input_size": list(size),
-                         "parameters": count_parameters(build_model(model_args)),
-                         "network_ms": percentiles(times[name]),
+                         "parameters": parameters, "network_ms": percentiles(times[name]),
                          "ratio_to_first": round(float(np.median(times[name])) / reference, 2)}
         print(f"{name}: p50 {configs[name]['network_ms']['p50']} ms, "
               f"{configs[name]['ratio_to_first']}x")
