@@ -97,6 +97,31 @@ def cached_training_images(run: Path, size: tuple[int, int], count: int
     return arrays, f"first {count} images of {shown}"
 
 
+def untrained_network(model_args: dict):
+    """A network of ``model_args`` with torch's seed 0 weights: the same for every bench."""
+    import torch
+
+    from task_outcome_ros import model
+
+    torch.manual_seed(0)
+    return model.build_model(model_args)
+
+
+def exported_checkpoint(path: Path, net, model_args: dict, **fields) -> Path:
+    """``net`` saved as a checkpoint at ``path`` and exported to ONNX beside it, as the package
+    ships a model. ``fields``: ``checkpoint.save``'s other arguments; left out, the default
+    task's working size and normalisation, no training config and no metrics."""
+    from task_outcome_ros import checkpoint, model
+    from task_outcome_ros.onnx_export import export_onnx
+
+    fields = {"input_size": model.DEFAULT_INPUT_SIZE,
+              "normalisation": dict(model.DEFAULT_NORMALISATION), "train_config": {},
+              "metrics": {}, **fields}
+    checkpoint.save(path, net, model_args=model_args, **fields)
+    export_onnx(path)
+    return path
+
+
 def record(section: str, data: dict, command: str, model: Path | None = None) -> None:
     """Merge one benchmark's figures into bench/results.json under ``section``, with the git
     revision measured and the sha256 of the model measured (``model``: a shipped model other

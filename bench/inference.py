@@ -31,7 +31,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import percentiles, record, rotated  # noqa: E402
+from common import (  # noqa: E402
+    exported_checkpoint,
+    percentiles,
+    record,
+    rotated,
+    untrained_network,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 RUN_DIR = REPO / "runs" / "default"
@@ -71,17 +77,10 @@ def prepare_model(tmp: Path, shipped: Path | None = None) -> tuple[Path, str]:
         export_onnx(path)
         return path, f"shipped {shipped} (ONNX exported to a temp dir)"
 
-    import torch
+    from task_outcome_ros.model import DEFAULT_MODEL_ARGS
 
-    from task_outcome_ros import checkpoint, model
-
-    torch.manual_seed(0)
-    net = model.build_model(dict(model.DEFAULT_MODEL_ARGS))
-    path = checkpoint.save(tmp / "outcome_fcn.pt", net, model_args=dict(model.DEFAULT_MODEL_ARGS),
-                           input_size=model.DEFAULT_INPUT_SIZE,
-                           normalisation=dict(model.DEFAULT_NORMALISATION),
-                           train_config={}, metrics={})
-    export_onnx(path)
+    args = dict(DEFAULT_MODEL_ARGS)
+    path = exported_checkpoint(tmp / "outcome_fcn.pt", untrained_network(args), args)
     return path, ("random-init checkpoint, default architecture (no shipped model at "
                   f"{shipped}); same compute cost, labels meaningless")
 
@@ -105,21 +104,17 @@ def tiny_network_model(source: Path, tmp: Path) -> tuple[Path, str]:
     import torch
 
     from task_outcome_ros import checkpoint, model
-    from task_outcome_ros.onnx_export import export_onnx
 
     real = checkpoint.load(source)
     args = {**real.model_args, **TINY_NETWORK_ARGS}
-    torch.manual_seed(0)
-    net = model.build_model(args)
+    net = untrained_network(args)
     with torch.no_grad():
         net.head.weight.zero_()
         net.head.bias.zero_()
         net.head.bias[0] = 1.0           # id 0: background, in every label table
-    path = checkpoint.save(tmp / "tiny_network.pt", net, model_args=args,
-                           input_size=real.input_size, normalisation=real.normalisation,
-                           train_config=real.train_config, metrics={},
-                           label_table=real.label_table)
-    export_onnx(path)
+    path = exported_checkpoint(tmp / "tiny_network.pt", net, args, input_size=real.input_size,
+                               normalisation=real.normalisation,
+                               train_config=real.train_config, label_table=real.label_table)
     return path, (f"{source.name} with its network swapped for {args} "
                   f"({model.count_parameters(net)} parameters, random init, the head "
                   "answering background everywhere): the node's cost but the network's, "

@@ -24,7 +24,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import percentiles, record, rotated  # noqa: E402
+from common import (  # noqa: E402
+    exported_checkpoint,
+    percentiles,
+    record,
+    rotated,
+    untrained_network,
+)
 
 # name -> (model_args on top of the default model's, input size (W, H)). The first is the
 # reference the ratios are taken to.
@@ -42,22 +48,17 @@ def exported_network(model_args: dict, size: tuple[int, int], tmp: Path):
     """An untrained network of ``model_args`` for a working ``size`` (W, H), saved as a
     checkpoint in ``tmp`` and exported as the package exports a shipped model; its ONNX
     Runtime session as the node opens it (1 thread), an input, and its parameter count."""
-    import torch
-
-    from task_outcome_ros import checkpoint, model
     from task_outcome_ros.inference import onnx_session
-    from task_outcome_ros.onnx_export import export_onnx
+    from task_outcome_ros.model import count_parameters
+    from task_outcome_ros.onnx_export import onnx_path_for
 
-    torch.manual_seed(0)
-    net = model.build_model(model_args)
-    path = checkpoint.save(tmp / "network.pt", net, model_args=model_args, input_size=size,
-                           normalisation=dict(model.DEFAULT_NORMALISATION),
-                           train_config={}, metrics={})
-    session = onnx_session(export_onnx(path), num_threads=1)
+    net = untrained_network(model_args)
+    path = exported_checkpoint(tmp / "network.pt", net, model_args, input_size=size)
+    session = onnx_session(onnx_path_for(path), num_threads=1)
     w, h = size
     x = np.random.default_rng(0).standard_normal(
         (1, model_args["in_channels"], h, w)).astype(np.float32)
-    return session, x, model.count_parameters(net)
+    return session, x, count_parameters(net)
 
 
 def main() -> None:
