@@ -126,7 +126,6 @@ def resolve_model_path(model: str | Path | None) -> Path:
     return shipped
 
 
-@torch.inference_mode()
 def onnx_session(onnx_path: str | Path, num_threads: int | None = None):
     """The ONNX Runtime session the node runs an export in: every graph optimisation, the
     CPU provider, ``num_threads`` intra-op threads (None: ONNX Runtime's choice), one
@@ -141,6 +140,7 @@ def onnx_session(onnx_path: str | Path, num_threads: int | None = None):
     return ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
 
 
+@torch.inference_mode()
 def predict_labels(model: nn.Module, batch: torch.Tensor) -> torch.Tensor:
     """(N, C, h, w) preprocessed batch -> (N, h, w) uint8 class ids (argmax of the logits)."""
     if batch.dim() != 4:

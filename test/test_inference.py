@@ -201,6 +201,7 @@ def test_predict_labels_shape_and_dtype(segmenter: OutcomeSegmenter) -> None:
                                        for s in range(2)]))
     labels = predict_labels(segmenter.model, batch)
     assert labels.shape == (2, 120, 160) and labels.dtype == torch.uint8
+    assert labels.is_inference()  # run without autograd bookkeeping, as the node runs it
     with pytest.raises(ValueError):
         predict_labels(segmenter.model, batch[0])
 
