@@ -315,6 +315,28 @@ def test_small_outcome_sample_weights_follow_the_outcomes_pixel_counts() -> None
         TrainConfig(small_outcome_weight=0.5).validate()
 
 
+def test_touching_outcomes_sample_weights_find_two_different_outcomes_side_by_side() -> None:
+    from task_outcome_ros.labels import FIRST_OUTCOME_ID, FIXTURE, IGNORE
+    from training.train import touching_outcome_pixels, touching_outcomes_sample_weights
+
+    success, fallen, stuck = FIRST_OUTCOME_ID, FIRST_OUTCOME_ID + 1, FIRST_OUTCOME_ID + 2
+    labels = np.zeros((5, 6, 6), np.uint8)
+    labels[0, 1:3, 1:3] = stuck                  # a box stacked on another: touching
+    labels[0, 3:5, 1:3] = success
+    labels[1, 1:3, 1:3] = success                # two outcomes a pixel apart: not touching
+    labels[1, 1:3, 4:6] = fallen
+    labels[2, :, :3] = success                   # one outcome against the fixture
+    labels[2, :, 3:] = FIXTURE
+    labels[3, 2, 2], labels[3, 2, 3] = fallen, IGNORE   # no depth is no outcome
+    labels[4, 0, 0], labels[4, 1, 0] = fallen, stuck    # one pixel pair, vertical
+    assert touching_outcome_pixels(labels).tolist() == [2, 0, 0, 0, 1]
+    assert touching_outcomes_sample_weights(labels, 1.0) is None
+    weights = touching_outcomes_sample_weights(labels, 3.0, chunk=2)   # chunks split images
+    assert weights.tolist() == [3.0, 1.0, 1.0, 1.0, 3.0]
+    with pytest.raises(ConfigError, match="train.touching_outcomes_weight"):
+        TrainConfig(touching_outcomes_weight=0.5).validate()
+
+
 def test_relief_beneath_support_is_refused_on_a_task_without_a_table(small_run, tmp_path,
                                                                     monkeypatch):
     """The default task's container stands on the room floor: no table top to measure beneath.

@@ -165,6 +165,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--small-outcome-weight", type=float, default=None,
                    help="sampling weight of training images with an outcome present under "
                         "800 px at 640 x 480, times the near-boundary weight (default 1 = off)")
+    p.add_argument("--touching-outcomes-weight", type=float, default=None,
+                   help="sampling weight of training images where two different outcomes "
+                        "touch in the labels, e.g. a box stacked on another, times the other "
+                        "weights (default 1 = off)")
     p.add_argument("--aug-noise", type=float, default=None,
                    help="re-drawn training noise per image: up to this many times the "
                         "sensor's own (default 1; 0 = off)")
@@ -238,6 +242,7 @@ def resolve_train_config(args: argparse.Namespace):
               "amp": "amp", "seed": "train_seed", "ema_decay": "ema_decay",
               "channels_last": "channels_last", "near_boundary_weight": "near_boundary_weight",
               "small_outcome_weight": "small_outcome_weight",
+              "touching_outcomes_weight": "touching_outcomes_weight",
               "aug_noise": "aug_noise", "aug_holes": "aug_holes",
               "aug_roll_deg": "aug_roll_deg",
               "lovasz_weight": "lovasz_weight",

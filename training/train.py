@@ -511,6 +511,33 @@ def small_outcome_sample_weights(manifest: dict, indices: np.ndarray, weight: fl
     return np.where(small, weight, 1.0)
 
 
+def touching_outcome_pixels(labels: np.ndarray) -> np.ndarray:
+    """(N, H, W) label images -> (N,) count of 4-neighbour pixel pairs whose two labels are
+    different outcomes (ids from ``FIRST_OUTCOME_ID``; 255, no depth, is no outcome)."""
+    def outcome(x: np.ndarray) -> np.ndarray:
+        return (x >= FIRST_OUTCOME_ID) & (x != IGNORE)
+
+    counts = np.zeros(len(labels), np.int64)
+    for a, b in ((labels[:, 1:, :], labels[:, :-1, :]), (labels[:, :, 1:], labels[:, :, :-1])):
+        touching = outcome(a) & outcome(b) & (a != b)
+        counts += touching.reshape(len(labels), -1).sum(axis=1)
+    return counts
+
+
+def touching_outcomes_sample_weights(labels: np.ndarray, weight: float,
+                                     chunk: int = 2000) -> np.ndarray | None:
+    """Per-image sampling weights: ``weight`` for training images where two different
+    outcomes touch (``touching_outcome_pixels`` > 0 in the working-size labels), 1 for
+    others; None when ``weight`` is 1. Chunked: the labels may be memory-mapped."""
+    if weight == 1.0:
+        return None
+    touching = np.concatenate([touching_outcome_pixels(np.asarray(labels[i:i + chunk])) > 0
+                               for i in range(0, len(labels), chunk)])
+    print(f"train: {touching.sum()} of {len(touching)} training images show two outcomes "
+          f"touching; sampled with weight {weight:g}")
+    return np.where(touching, weight, 1.0)
+
+
 def training_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator, cfg: TrainConfig,
                    aug_noise: float, norm: dict) -> tuple[torch.Tensor, torch.Tensor]:
     """The network input and labels of the training images ``idx``: whole images
@@ -540,7 +567,7 @@ RESUME_FREE_FIELDS = frozenset({"max_minutes", "device", "threads", "amp",
 RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
 ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
-                      "small_outcome_weight": 1.0,
+                      "small_outcome_weight": 1.0, "touching_outcomes_weight": 1.0,
                       "relief_window_px": 0, "relief_smoothing_px": 0, "relief_base_px": 0,
                       "relief_noise_sds": 0.0, "nearest_height": False,
                       "relief_beneath_support": False, "aug_holes": 0.0,
@@ -640,7 +667,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
                             table.num_classes).to(device)
     sample_weights = combined_sample_weights(
         near_boundary_sample_weights(run_dir, train_arrays["indices"], cfg.near_boundary_weight),
-        small_outcome_sample_weights(manifest, train_arrays["indices"], cfg.small_outcome_weight))
+        small_outcome_sample_weights(manifest, train_arrays["indices"], cfg.small_outcome_weight),
+        touching_outcomes_sample_weights(train_arrays["labels"], cfg.touching_outcomes_weight))
 
     model_args = {**cfg.model_args, "in_channels": input_channels(norm),
                   "num_classes": table.num_classes}
