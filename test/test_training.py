@@ -337,6 +337,62 @@ def test_touching_outcomes_sample_weights_find_two_different_outcomes_side_by_si
         TrainConfig(touching_outcomes_weight=0.5).validate()
 
 
+def test_objects_cast_with_ids_sit_on_their_outcomes_pixels_and_touching_is_id_adjacency(
+        small_run, tmp_path):
+    """The id image is the rendered frame with each object told apart: cast at the full size,
+    object k's pixels carry object k's outcome in the stored labels (where the sensor left
+    depth), so ids follow the objects' order; a frame counts when two ids are 4-neighbours."""
+    from task_outcome_ros.labels import IGNORE
+    from training.hard_cases import run_episodes
+    from training.overlaps import (
+        FIRST_OBJECT_ID,
+        frames_with_touching_objects,
+        object_id_image,
+        objects_touch,
+        working_camera,
+    )
+    from training.render import read_pair
+    from training.train import touching_objects_sample_weights
+
+    run = run_episodes(small_run, set(range(40)))
+    outcomes, table = load_outcomes(small_run)
+    cameras = {im["episode"]: im["camera"] for im in load_manifest(small_run)["images"]}
+    checked = 0
+    for episode in run.episodes[:8]:
+        index = int(episode["episode"])
+        camera = working_camera(cameras[index], (cameras[index]["width"],
+                                                 cameras[index]["height"]))
+        ids = object_id_image(episode, outcomes[index], run.cfg.scene, table, camera)
+        _, labels = read_pair(small_run, index)
+        for k, outcome in enumerate(outcomes[index]):
+            on_object = (ids == FIRST_OBJECT_ID + k) & (labels != IGNORE)
+            if on_object.sum() >= 50:
+                agree = (labels[on_object] == table.outcome_ids[outcome]).mean()
+                assert agree > 0.9, (index, k, outcome, agree)
+                checked += 1
+    assert checked >= 5
+
+    apart, stacked, alone = (np.zeros((4, 5), np.uint8) for _ in range(3))
+    apart[1, 1], apart[1, 3] = FIRST_OBJECT_ID, FIRST_OBJECT_ID + 1     # a pixel between them
+    stacked[1, 1], stacked[2, 1] = FIRST_OBJECT_ID + 2, FIRST_OBJECT_ID  # one above the other
+    alone[1:3, 1:4] = FIRST_OBJECT_ID + 1                                # one object
+    assert [objects_touch(a) for a in (apart, stacked, alone)] == [False, True, False]
+
+    indices = np.arange(40)
+    touching = frames_with_touching_objects(small_run, indices, (160, 120))
+    assert touching.shape == (40,) and touching.dtype == bool
+    single = [int(e["episode"]) for e in run.episodes if len(e["objects"]) < 2]
+    assert single and not touching[single].any()       # one object cannot touch another
+    assert touching.any()                              # boxes dropped together do touch
+    assert touching_objects_sample_weights(small_run, indices, (160, 120), 1.0) is None
+    weights = touching_objects_sample_weights(small_run, indices, (160, 120), 2.0)
+    assert weights.tolist() == np.where(touching, 2.0, 1.0).tolist()
+    with pytest.raises(ValueError, match="simulate"):
+        frames_with_touching_objects(tmp_path, indices, (160, 120))   # a run without simulate/
+    with pytest.raises(ConfigError, match="train.touching_objects_weight"):
+        TrainConfig(touching_objects_weight=0.5).validate()
+
+
 def test_relief_beneath_support_is_refused_on_a_task_without_a_table(small_run, tmp_path,
                                                                     monkeypatch):
     """The default task's container stands on the room floor: no table top to measure beneath.

@@ -169,6 +169,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help="sampling weight of training images where two different outcomes "
                         "touch in the labels, e.g. a box stacked on another, times the other "
                         "weights (default 1 = off)")
+    p.add_argument("--touching-objects-weight", type=float, default=None,
+                   help="sampling weight of training images where two objects touch in the "
+                        "frame, whatever their outcomes, times the other weights (default 1 = "
+                        "off)")
     p.add_argument("--aug-noise", type=float, default=None,
                    help="re-drawn training noise per image: up to this many times the "
                         "sensor's own (default 1; 0 = off)")
@@ -243,6 +247,7 @@ def resolve_train_config(args: argparse.Namespace):
               "channels_last": "channels_last", "near_boundary_weight": "near_boundary_weight",
               "small_outcome_weight": "small_outcome_weight",
               "touching_outcomes_weight": "touching_outcomes_weight",
+              "touching_objects_weight": "touching_objects_weight",
               "aug_noise": "aug_noise", "aug_holes": "aug_holes",
               "aug_roll_deg": "aug_roll_deg",
               "lovasz_weight": "lovasz_weight",

@@ -792,6 +792,11 @@ class TrainConfig:
     # wrong against 17 of the other 898 (a success box under a box stacked on it above the rim
     # painted with the stacked box's outcome). Read from the labels, so any task has it. 1 = off.
     touching_outcomes_weight: float = 1.0
+    # Sampling weight of training images where two objects touch in the frame, whatever their
+    # outcomes (overlaps.frames_with_touching_objects: the objects cast again with ids of their
+    # own at the working size), multiplying the weights above. The balanced form of the weight
+    # above, which taught the network that a box on another box is stuck. 1 = off.
+    touching_objects_weight: float = 1.0
     augment: bool = True
     # Re-drawn axial noise per training image: U(0, aug_noise) x the sensor's own noise at the
     # working size (redrawn_noise.SENSOR_NOISE_PER_Z2). Before model 0.1.5 it was ~7x the sensor's.
@@ -897,6 +902,7 @@ class TrainConfig:
         _check_range(o, "near_boundary_weight", self.near_boundary_weight, 1.0, 100.0)
         _check_range(o, "small_outcome_weight", self.small_outcome_weight, 1.0, 100.0)
         _check_range(o, "touching_outcomes_weight", self.touching_outcomes_weight, 1.0, 100.0)
+        _check_range(o, "touching_objects_weight", self.touching_objects_weight, 1.0, 100.0)
         _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
         _check_range(o, "aug_holes", self.aug_holes, 0.0, 1.0)
         if self.aug_holes and not self.augment:

@@ -72,6 +72,7 @@ from training.losses import (
     object_balance_weights,
     outcome_lovasz_loss,
 )
+from training.overlaps import frames_with_touching_objects
 from training.redrawn_noise import axial_noise, drop_pixels, noise_levels
 from training.roll import draw_roll, measure_images, roll_images
 from training.size_recall import SMALL_OUTCOME_PIXELS
@@ -538,6 +539,19 @@ def touching_outcomes_sample_weights(labels: np.ndarray, weight: float,
     return np.where(touching, weight, 1.0)
 
 
+def touching_objects_sample_weights(run_dir: Path, indices: np.ndarray,
+                                    size: tuple[int, int], weight: float) -> np.ndarray | None:
+    """Per-image sampling weights: ``weight`` for training images where two objects touch in
+    the frame cast at the working ``size`` (``overlaps.frames_with_touching_objects``), 1 for
+    others; None when ``weight`` is 1."""
+    if weight == 1.0:
+        return None
+    touching = frames_with_touching_objects(run_dir, indices, tuple(size))
+    print(f"train: {touching.sum()} of {len(touching)} training images show two objects "
+          f"touching; sampled with weight {weight:g}")
+    return np.where(touching, weight, 1.0)
+
+
 def training_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator, cfg: TrainConfig,
                    aug_noise: float, norm: dict) -> tuple[torch.Tensor, torch.Tensor]:
     """The network input and labels of the training images ``idx``: whole images
@@ -568,6 +582,7 @@ RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
 ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
                       "small_outcome_weight": 1.0, "touching_outcomes_weight": 1.0,
+                      "touching_objects_weight": 1.0,
                       "relief_window_px": 0, "relief_smoothing_px": 0, "relief_base_px": 0,
                       "relief_noise_sds": 0.0, "nearest_height": False,
                       "relief_beneath_support": False, "aug_holes": 0.0,
@@ -668,7 +683,9 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
     sample_weights = combined_sample_weights(
         near_boundary_sample_weights(run_dir, train_arrays["indices"], cfg.near_boundary_weight),
         small_outcome_sample_weights(manifest, train_arrays["indices"], cfg.small_outcome_weight),
-        touching_outcomes_sample_weights(train_arrays["labels"], cfg.touching_outcomes_weight))
+        touching_outcomes_sample_weights(train_arrays["labels"], cfg.touching_outcomes_weight),
+        touching_objects_sample_weights(run_dir, train_arrays["indices"], cfg.input_size,
+                                        cfg.touching_objects_weight))
 
     model_args = {**cfg.model_args, "in_channels": input_channels(norm),
                   "num_classes": table.num_classes}
