@@ -794,8 +794,9 @@ class TrainConfig:
     touching_outcomes_weight: float = 1.0
     # Sampling weight of training images where two objects touch in the frame, whatever their
     # outcomes (overlaps.frames_with_touching_objects: the objects cast again with ids of their
-    # own at the working size), multiplying the weights above. The balanced form of the weight
-    # above, which taught the network that a box on another box is stuck. 1 = off.
+    # own at the working size), multiplying the weights above: the balanced form of the weight
+    # above, which broke stacks of success boxes as often as it fixed stacked boxes. Neither
+    # got the default's stacked boxes right (docs/experiments.md). 1 = off.
     touching_objects_weight: float = 1.0
     augment: bool = True
     # Re-drawn axial noise per training image: U(0, aug_noise) x the sensor's own noise at the

@@ -1,12 +1,15 @@
 """Which frames show two objects touching in the image, whatever their outcomes.
 
 Why: drawing the frames where two *outcomes* touch more often (``--touching-outcomes-weight``)
-taught the default network that a box on or in front of another box is stuck_on_rim: it fixed
-as many success boxes under stuck ones as it broke stacks of success boxes (docs/experiments.md).
-The labels cannot tell two touching objects of one outcome apart, so this module casts each
-frame's objects again, each with an id of its own, at the working size: a frame counts when two
+fixed two default images where a success box meets a stuck one and broke two stacks of success
+boxes, as if it moved the network's prior for boxes on boxes (docs/experiments.md). The labels
+cannot tell two touching objects of one outcome apart, so this module casts each frame's
+objects again, each with an id of its own, at the working size: a frame counts when two
 objects' pixels are 4-neighbours (one resting on, leaning on or seen in front of the other).
-The cast uses the stored simulation, outcomes and camera, so it needs no re-render.
+The cast uses the stored simulation, outcomes and camera, so it needs no re-render; the
+scenery drawn per frame (neighbouring totes) is left out. Drawn 3x on the default task, these
+frames did not get the stacked boxes right either; the id images are also what an
+object-boundary target would need.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from task_outcome_ros.labels import BACKGROUND
+from training.dataset import load_manifest
 from training.discover import load_outcomes
 from training.fixture import episode_fixture
 from training.hard_cases import run_episodes
@@ -65,8 +69,6 @@ def frames_with_touching_objects(data_dir: Path, episodes: np.ndarray,
     if run is None:
         raise ValueError(f"{data_dir}: finding touching objects needs the run's simulate/ "
                          "results and manifest")
-    from training.dataset import load_manifest
-
     cameras = {im["episode"]: im["camera"] for im in load_manifest(data_dir)["images"]}
     outcomes, table = load_outcomes(data_dir)
     by_index = {int(e["episode"]): e for e in run.episodes}
