@@ -356,7 +356,8 @@ def test_objects_cast_with_ids_sit_on_their_outcomes_pixels_and_touching_is_id_a
 
     run = run_episodes(small_run, set(range(40)))
     outcomes, table = load_outcomes(small_run)
-    cameras = {im["episode"]: im["camera"] for im in load_manifest(small_run)["images"]}
+    manifest = load_manifest(small_run)
+    cameras = {im["episode"]: im["camera"] for im in manifest["images"]}
     checked = 0
     for episode in run.episodes[:8]:
         index = int(episode["episode"])
@@ -379,16 +380,16 @@ def test_objects_cast_with_ids_sit_on_their_outcomes_pixels_and_touching_is_id_a
     assert [objects_touch(a) for a in (apart, stacked, alone)] == [False, True, False]
 
     indices = np.arange(40)
-    touching = frames_with_touching_objects(small_run, indices, (160, 120))
+    touching = frames_with_touching_objects(small_run, manifest, indices, (160, 120))
     assert touching.shape == (40,) and touching.dtype == bool
     single = [int(e["episode"]) for e in run.episodes if len(e["objects"]) < 2]
     assert single and not touching[single].any()       # one object cannot touch another
     assert touching.any()                              # boxes dropped together do touch
-    assert touching_objects_sample_weights(small_run, indices, (160, 120), 1.0) is None
-    weights = touching_objects_sample_weights(small_run, indices, (160, 120), 2.0)
+    assert touching_objects_sample_weights(small_run, manifest, indices, (160, 120), 1.0) is None
+    weights = touching_objects_sample_weights(small_run, manifest, indices, (160, 120), 2.0)
     assert weights.tolist() == np.where(touching, 2.0, 1.0).tolist()
     with pytest.raises(ValueError, match="simulate"):
-        frames_with_touching_objects(tmp_path, indices, (160, 120))   # a run without simulate/
+        frames_with_touching_objects(tmp_path, manifest, indices, (160, 120))   # no simulate/
     with pytest.raises(ConfigError, match="train.touching_objects_weight"):
         TrainConfig(touching_objects_weight=0.5).validate()
 

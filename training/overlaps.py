@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from task_outcome_ros.labels import BACKGROUND
-from training.dataset import load_manifest
 from training.discover import load_outcomes
 from training.fixture import episode_fixture
 from training.hard_cases import run_episodes
@@ -60,16 +59,18 @@ def objects_touch(ids: np.ndarray) -> bool:
     return False
 
 
-def frames_with_touching_objects(data_dir: Path, episodes: np.ndarray,
+def frames_with_touching_objects(data_dir: Path, manifest: dict, episodes: np.ndarray,
                                  size: tuple[int, int]) -> np.ndarray:
     """(N,) bool per episode of ``episodes`` (a run's image indices): two objects touch in its
-    frame cast at ``size``. Raises ValueError when the run lacks its simulation results."""
+    frame cast at ``size`` with the camera of the run's ``manifest`` (``load_manifest``, which
+    the trainer has loaded already). Raises ValueError when the run lacks its simulation
+    results."""
     wanted = {int(e) for e in episodes}
     run = run_episodes(data_dir, wanted)
     if run is None:
         raise ValueError(f"{data_dir}: finding touching objects needs the run's simulate/ "
                          "results and manifest")
-    cameras = {im["episode"]: im["camera"] for im in load_manifest(data_dir)["images"]}
+    cameras = {im["episode"]: im["camera"] for im in manifest["images"]}
     outcomes, table = load_outcomes(data_dir)
     by_index = {int(e["episode"]): e for e in run.episodes}
     touching = np.zeros(len(episodes), bool)

@@ -475,6 +475,14 @@ def epoch_order(n: int, sample_weights: np.ndarray | None, gen: torch.Generator)
                              replacement=True, generator=gen).numpy()
 
 
+def flagged_sample_weights(flagged: np.ndarray, weight: float, what: str) -> np.ndarray:
+    """``weight`` for the flagged training images, 1 for the others, saying how many are
+    flagged (``what`` they are) -- the tail every per-image sampling weight below shares."""
+    print(f"train: {flagged.sum()} of {len(flagged)} training images {what}; "
+          f"sampled with weight {weight:g}")
+    return np.where(flagged, weight, 1.0)
+
+
 def near_boundary_sample_weights(run_dir: Path, indices: np.ndarray, weight: float
                                  ) -> np.ndarray | None:
     """Per-image sampling weights: ``weight`` for images tagged near_boundary, 1 for others;
@@ -487,9 +495,7 @@ def near_boundary_sample_weights(run_dir: Path, indices: np.ndarray, weight: flo
                          "to find the near-boundary images; --near-boundary-weight 1 samples "
                          "uniformly")
     near = np.array(["near_boundary" in cases[int(i)].tags for i in indices])
-    print(f"train: {near.sum()} of {len(near)} training images are near the boundary; "
-          f"sampled with weight {weight:g}")
-    return np.where(near, weight, 1.0)
+    return flagged_sample_weights(near, weight, "are near the boundary")
 
 
 def small_outcome_sample_weights(manifest: dict, indices: np.ndarray, weight: float
@@ -507,9 +513,8 @@ def small_outcome_sample_weights(manifest: dict, indices: np.ndarray, weight: fl
         limit = scale_pixel_count(SMALL_OUTCOME_PIXELS, size["height"], size["width"])
         small[k] = any(present and im["pixel_counts"][name] < limit
                        for name, present in im["present"].items())
-    print(f"train: {small.sum()} of {len(small)} training images show an outcome under "
-          f"{SMALL_OUTCOME_PIXELS} px; sampled with weight {weight:g}")
-    return np.where(small, weight, 1.0)
+    return flagged_sample_weights(small, weight,
+                                  f"show an outcome under {SMALL_OUTCOME_PIXELS} px")
 
 
 def touching_outcome_pixels(labels: np.ndarray) -> np.ndarray:
@@ -534,22 +539,18 @@ def touching_outcomes_sample_weights(labels: np.ndarray, weight: float,
         return None
     touching = np.concatenate([touching_outcome_pixels(np.asarray(labels[i:i + chunk])) > 0
                                for i in range(0, len(labels), chunk)])
-    print(f"train: {touching.sum()} of {len(touching)} training images show two outcomes "
-          f"touching; sampled with weight {weight:g}")
-    return np.where(touching, weight, 1.0)
+    return flagged_sample_weights(touching, weight, "show two outcomes touching")
 
 
-def touching_objects_sample_weights(run_dir: Path, indices: np.ndarray,
+def touching_objects_sample_weights(run_dir: Path, manifest: dict, indices: np.ndarray,
                                     size: tuple[int, int], weight: float) -> np.ndarray | None:
     """Per-image sampling weights: ``weight`` for training images where two objects touch in
     the frame cast at the working ``size`` (``overlaps.frames_with_touching_objects``), 1 for
     others; None when ``weight`` is 1."""
     if weight == 1.0:
         return None
-    touching = frames_with_touching_objects(run_dir, indices, tuple(size))
-    print(f"train: {touching.sum()} of {len(touching)} training images show two objects "
-          f"touching; sampled with weight {weight:g}")
-    return np.where(touching, weight, 1.0)
+    touching = frames_with_touching_objects(run_dir, manifest, indices, tuple(size))
+    return flagged_sample_weights(touching, weight, "show two objects touching")
 
 
 def training_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator, cfg: TrainConfig,
@@ -684,8 +685,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         near_boundary_sample_weights(run_dir, train_arrays["indices"], cfg.near_boundary_weight),
         small_outcome_sample_weights(manifest, train_arrays["indices"], cfg.small_outcome_weight),
         touching_outcomes_sample_weights(train_arrays["labels"], cfg.touching_outcomes_weight),
-        touching_objects_sample_weights(run_dir, train_arrays["indices"], cfg.input_size,
-                                        cfg.touching_objects_weight))
+        touching_objects_sample_weights(run_dir, manifest, train_arrays["indices"],
+                                        cfg.input_size, cfg.touching_objects_weight))
 
     model_args = {**cfg.model_args, "in_channels": input_channels(norm),
                   "num_classes": table.num_classes}
