@@ -124,8 +124,8 @@ def main() -> None:
         net, optim, average = nets[config]
         t0 = time.perf_counter()
         idx = np.sort(torch.randint(0, n, (cfg.batch_size,), generator=gen).numpy())
-        depth, valid, labels, _, _ = gather_batch(arrays, idx, gen, cfg.aug_noise,
-                                                  cfg.aug_holes, cfg.aug_roll_deg)
+        depth, valid, labels = gather_batch(arrays, idx, gen, cfg.aug_noise, cfg.aug_holes,
+                                            cfg.aug_roll_deg)[:3]
         t1 = time.perf_counter()
         x = network_input(depth, valid, norm)
         if config[1]:

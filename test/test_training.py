@@ -18,7 +18,7 @@ from task_outcome_ros.fragments import FRAGMENT_MAX_PIXELS
 from task_outcome_ros.labels import DEFAULT_TABLE, FIXTURE, outcomes_present, presence_scores
 from task_outcome_ros.model import DEFAULT_NORMALISATION, check_normalisation
 from training.config import ConfigError, DiscoverConfig, TrainConfig
-from training.dataset import load_manifest
+from training.dataset import load_cache, load_manifest
 from training.discover import load_outcomes
 from training.evaluate import confusion, evaluate
 from training.hard_cases import episode_hard_cases
@@ -161,7 +161,7 @@ def test_augmentation_keeps_labels_and_redraws_noise_at_the_sensors_level():
     depth = torch.full((64, 120, 160), 2.0)
     labels = torch.zeros((64, 120, 160), dtype=torch.long)
     labels[:, 40:80, 60:100] = SUCCESS
-    out, valid, out_labels, _, _ = augment(depth.clone(), torch.ones_like(depth), labels, gen)
+    out, valid, out_labels = augment(depth.clone(), torch.ones_like(depth), labels, gen)[:3]
     # Labels only move with the image (mirror, shift): same object area, nothing relabelled.
     assert set(out_labels.unique().tolist()) <= {0, SUCCESS, 255}
     assert ((out_labels == SUCCESS).sum((1, 2)) == 40 * 40).all()
@@ -392,6 +392,129 @@ def test_objects_cast_with_ids_sit_on_their_outcomes_pixels_and_touching_is_id_a
         frames_with_touching_objects(tmp_path, manifest, indices, (160, 120))   # no simulate/
     with pytest.raises(ConfigError, match="train.touching_objects_weight"):
         TrainConfig(touching_objects_weight=0.5).validate()
+
+
+def test_object_distance_dips_to_one_along_the_seam_of_two_touching_objects(small_run,
+                                                                           tmp_path):
+    """The auxiliary target: each object pixel's distance to anything that is not the same
+    object, so two touching boxes read 1 on both sides of their seam as against the floor,
+    and an object cut by the frame's edge is not measured from it. Cast from the stored run,
+    it sits on the labelled objects and is cached once beside the working-size cache."""
+    from training.overlaps import (
+        FIRST_OBJECT_ID,
+        OBJECT_DISTANCE_CLIP_PX,
+        cast_object_ids,
+        object_distance,
+        object_distance_cache,
+    )
+
+    ids = np.zeros((9, 14), np.uint8)
+    ids[1:8, 1:7], ids[1:8, 7:13] = FIRST_OBJECT_ID, FIRST_OBJECT_ID + 1  # side by side
+    dist = object_distance(ids)
+    assert (dist[ids == 0] == 0).all()
+    assert dist[4, 6] == dist[4, 7] == 1                 # the seam, on both sides
+    assert dist[4, 3] == dist[4, 10] == 3                # each box's own middle
+    edge = np.zeros((6, 6), np.uint8)
+    edge[:, :3] = FIRST_OBJECT_ID                         # cut by the frame's left edge
+    assert object_distance(edge)[2].tolist() == [3, 2, 1, 0, 0, 0]
+    assert object_distance(np.full((40, 40), FIRST_OBJECT_ID, np.uint8)).max() \
+        == OBJECT_DISTANCE_CLIP_PX
+
+    manifest = load_manifest(small_run)
+    cache = load_cache(small_run, "train", (160, 120), workers=1)
+    indices, labels = cache["indices"], cache["labels"]
+    distance = object_distance_cache(small_run, manifest, indices, "train", (160, 120))
+    assert distance.shape == labels.shape and distance.dtype == np.uint8
+    outcome = (labels >= SUCCESS) & (labels != 255)
+    assert (distance[outcome] > 0).mean() > 0.9          # the cast sits on the labels' objects
+    assert (distance[labels == FIXTURE] > 0).mean() < 0.05
+    cast = dict(cast_object_ids(small_run, manifest, indices[:3], (160, 120)))
+    for k, ids in cast.items():
+        assert np.array_equal(distance[k] > 0, ids >= FIRST_OBJECT_ID)
+    # Cached: read again, not cast again; a file of other images is refused.
+    assert (small_run / "cache" / "train_160x120_object_distance.npz").is_file()
+    assert np.array_equal(object_distance_cache(small_run, manifest, indices, "train",
+                                                (160, 120)), distance)
+    with pytest.raises(ValueError, match="other images"):
+        object_distance_cache(small_run, manifest, indices[:-1], "train", (160, 120))
+    with pytest.raises(ConfigError, match="train.object_distance_weight"):
+        TrainConfig(object_distance_weight=0.5, aug_roll_deg=15.0).validate()
+    with pytest.raises(ConfigError, match="train.object_distance_weight"):
+        TrainConfig(object_distance_weight=-1.0).validate()
+
+
+def test_augmentation_moves_the_object_distances_with_the_labels():
+    """Mirror and shift move the auxiliary target as they move the labels: after augmenting,
+    it is non-zero exactly on the object's labelled pixels; the noise draws do not change."""
+    from training.train import augment
+
+    labels = torch.zeros((16, 40, 60), dtype=torch.long)
+    labels[:, 10:25, 5:20] = SUCCESS                      # off-centre: a mirror moves it
+    distance = (labels == SUCCESS).float() * 2.0
+    args = (torch.full((16, 40, 60), 2.0), torch.ones((16, 40, 60)), labels)
+    plain = augment(*args, torch.Generator().manual_seed(4), holes=0.5)
+    moved = augment(*args, torch.Generator().manual_seed(4), holes=0.5,
+                    object_distance=distance)
+    assert torch.equal(plain.depth, moved.depth) and torch.equal(plain.labels, moved.labels)
+    seen = moved.labels != 255
+    assert torch.equal((moved.object_distance > 0)[seen], (moved.labels == SUCCESS)[seen])
+    assert not torch.equal(moved.object_distance, distance)   # some images did move
+
+
+def test_object_distance_head_trains_the_features_and_stays_out_of_the_checkpoint(
+        small_run, tmp_path, monkeypatch, capsys):
+    """--object-distance-weight: a readout of the class head's input trained beside it; the
+    shipped network is the plain one (same weights' names, loads and runs in the node's
+    segmenter), and a resumed run takes the head's weights back from last.pt."""
+    from task_outcome_ros import checkpoint
+    from task_outcome_ros.inference import OutcomeSegmenter
+    from task_outcome_ros.model import build_model
+    from training import train as train_module
+    from training.losses import ObjectDistanceHead, object_distance_loss
+    from training.render import read_pair
+
+    net = build_model({"in_channels": 3, "num_classes": 5, "base_width": 4, "levels": 2})
+    head = ObjectDistanceHead(net)
+    labels = torch.full((2, 24, 32), SUCCESS)
+    net(torch.randn(2, 3, 24, 32))
+    loss = object_distance_loss(head((24, 32)), torch.full((2, 24, 32), 3.0), labels, 6)
+    loss.backward()
+    assert net.stem[0].weight.grad.abs().sum() > 0       # the target reaches the features
+    with pytest.raises(RuntimeError, match="forward first"):
+        head((24, 32))                                   # one readout per forward
+
+    run = tmp_path / "run"
+    r = _cli("train", "--out", str(run), "--dataset-from", str(small_run), "--epochs", "1",
+             "--batch-size", "8", "--device", "cpu", "--object-distance-weight", "0.5")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (run / "cache" / "train_160x120_object_distance.npz").is_file()   # made or reused
+    best = checkpoint.load(run / "train" / "best.pt")
+    plain = build_model(best.model_args)
+    assert set(best.model.state_dict()) == set(plain.state_dict())
+    assert best.train_config["train"]["object_distance_weight"] == 0.5
+    last = checkpoint.load(run / "train" / "last.pt")
+    assert "object_distance_head" in last.optimizer_state
+    depth, frame_labels = read_pair(small_run, 0)
+    result = OutcomeSegmenter(run / "train" / "best.pt", backend="torch").segment(depth)
+    assert result.labels.shape == frame_labels.shape
+    # Interrupted in its second epoch (validation fails), then resumed from last.pt.
+    cfg = TrainConfig(epochs=2, batch_size=8, device="cpu", object_distance_weight=0.5)
+    real_validate, calls = train_module.validate, []
+
+    def validate_once(*args, **kwargs):
+        calls.append(1)
+        if len(calls) > 1:
+            raise RuntimeError("interrupted")
+        return real_validate(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "validate", validate_once)
+    with pytest.raises(RuntimeError, match="interrupted"):
+        train_module.train(run, cfg, out=tmp_path / "again", progress=False)
+    monkeypatch.setattr(train_module, "validate", real_validate)
+    train_module.train(run, cfg, out=tmp_path / "again", progress=False)
+    out = capsys.readouterr().out
+    assert "resuming from" in out and "after epoch 1" in out
+    assert len(json.loads((tmp_path / "again" / "history.json").read_text())) == 2
 
 
 def test_relief_beneath_support_is_refused_on_a_task_without_a_table(small_run, tmp_path,

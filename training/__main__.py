@@ -173,6 +173,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
                    help="sampling weight of training images where two objects touch in the "
                         "frame, whatever their outcomes, times the other weights (default 1 = "
                         "off)")
+    p.add_argument("--object-distance-weight", type=float, default=None,
+                   help="weight of a training-only target: each object pixel's distance to "
+                        "the nearest pixel of anything else, read from the class head's "
+                        "features, so they tell touching objects apart (default 0 = off)")
     p.add_argument("--aug-noise", type=float, default=None,
                    help="re-drawn training noise per image: up to this many times the "
                         "sensor's own (default 1; 0 = off)")
@@ -248,6 +252,7 @@ def resolve_train_config(args: argparse.Namespace):
               "small_outcome_weight": "small_outcome_weight",
               "touching_outcomes_weight": "touching_outcomes_weight",
               "touching_objects_weight": "touching_objects_weight",
+              "object_distance_weight": "object_distance_weight",
               "aug_noise": "aug_noise", "aug_holes": "aug_holes",
               "aug_roll_deg": "aug_roll_deg",
               "lovasz_weight": "lovasz_weight",

@@ -798,6 +798,14 @@ class TrainConfig:
     # above, which broke stacks of success boxes as often as it fixed stacked boxes. Neither
     # got the default's stacked boxes right (docs/experiments.md). 1 = off.
     touching_objects_weight: float = 1.0
+    # Weight of an auxiliary training target (losses.ObjectDistanceHead): on every object pixel,
+    # its distance to the nearest pixel that is not the same object (overlaps.object_distance,
+    # from the objects cast again with ids of their own), read out of the features the class
+    # head reads. Labels cannot tell two touching objects of one outcome apart, nor where a
+    # stacked box ends and the box under it begins; this target asks the features for it. The
+    # head is for training only: the checkpoint's network, and inference, stay as they are.
+    # Whole images without roll only (not carried through crops or the roll). 0 = off.
+    object_distance_weight: float = 0.0
     augment: bool = True
     # Re-drawn axial noise per training image: U(0, aug_noise) x the sensor's own noise at the
     # working size (redrawn_noise.SENSOR_NOISE_PER_Z2). Before model 0.1.5 it was ~7x the sensor's.
@@ -904,6 +912,11 @@ class TrainConfig:
         _check_range(o, "small_outcome_weight", self.small_outcome_weight, 1.0, 100.0)
         _check_range(o, "touching_outcomes_weight", self.touching_outcomes_weight, 1.0, 100.0)
         _check_range(o, "touching_objects_weight", self.touching_objects_weight, 1.0, 100.0)
+        _check_range(o, "object_distance_weight", self.object_distance_weight, 0.0, 100.0)
+        if self.object_distance_weight and (self.train_crop is not None or self.aug_roll_deg):
+            raise ConfigError(f"{o}.object_distance_weight = {self.object_distance_weight} "
+                              "needs whole images without roll: its target is not carried "
+                              "through train_crop or aug_roll_deg yet")
         _check_range(o, "aug_noise", self.aug_noise, 0.0, 20.0)
         _check_range(o, "aug_holes", self.aug_holes, 0.0, 1.0)
         if self.aug_holes and not self.augment:

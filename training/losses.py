@@ -85,3 +85,48 @@ def object_balance_weights(labels: torch.Tensor, outcome_ids: list[int], referen
             boost = np.clip(reference_pixels / np.maximum(area, 1.0), 1.0, max_weight)
             weights[i][mask] = boost[components[mask]]
     return torch.from_numpy(weights).to(labels.device)
+
+
+class ObjectDistanceHead(torch.nn.Module):
+    """A training-only readout of each pixel's distance inside its own object
+    (``overlaps.object_distance``, ``TrainConfig.object_distance_weight``), from the very
+    features the network's class head reads: a 1x1 convolution, so the features themselves
+    must carry where one object ends and the next begins.
+
+    It listens to ``network.head``'s input through a forward pre-hook, so the network and
+    its checkpoint stay as they are (the runtime never sees this head). Build it after any
+    copy of the network (the weight average), or the copy carries the hook too."""
+
+    def __init__(self, network: torch.nn.Module) -> None:
+        super().__init__()
+        self.readout = torch.nn.Conv2d(network.head.in_channels, 1, 1)
+        # A folded network without a full-size head reads its features on the half-size grid
+        # and upsamples its logits; so does this readout.
+        self.upsample = 1 if network.full_size_head else network.space_to_depth
+        self._features: torch.Tensor | None = None
+        self._hook = network.head.register_forward_pre_hook(self._keep)
+
+    def _keep(self, _module, args) -> None:
+        self._features = args[0]
+
+    def forward(self, size: tuple[int, int]) -> torch.Tensor:
+        """(N, h, w) logits of the last network forward's features, at ``size`` (h, w)."""
+        if self._features is None:
+            raise RuntimeError("ObjectDistanceHead: run the network forward first")
+        h, w = size
+        out = self.readout(self._features)
+        self._features = None  # one readout per forward: a stale tensor is never reused
+        if self.upsample > 1:
+            out = torch.nn.functional.interpolate(out, scale_factor=float(self.upsample),
+                                                  mode="bilinear", align_corners=False)
+        return out[:, 0, :h, :w]
+
+
+def object_distance_loss(logits: torch.Tensor, target_px: torch.Tensor, labels: torch.Tensor,
+                         clip_px: int) -> torch.Tensor:
+    """Mean absolute error of sigmoid(logits) against ``target_px / clip_px`` over the pixels
+    labelled with an outcome (what the target describes; elsewhere the head may say anything).
+    logits (N, h, w), target_px (N, h, w) distances in pixels, labels (N, h, w) long."""
+    on_objects = (labels >= FIRST_OUTCOME_ID) & (labels != IGNORE)
+    error = (logits.float().sigmoid() - target_px / clip_px).abs()
+    return (error * on_objects).sum() / on_objects.sum().clamp_min(1)

@@ -69,10 +69,16 @@ from training.hard_cases import episode_hard_cases
 from training.holes import punch_holes
 from training.losses import (
     OBJECT_BALANCE_MAX_WEIGHT,
+    ObjectDistanceHead,
     object_balance_weights,
+    object_distance_loss,
     outcome_lovasz_loss,
 )
-from training.overlaps import frames_with_touching_objects
+from training.overlaps import (
+    OBJECT_DISTANCE_CLIP_PX,
+    frames_with_touching_objects,
+    object_distance_cache,
+)
 from training.redrawn_noise import axial_noise, drop_pixels, noise_levels
 from training.roll import draw_roll, measure_images, roll_images
 from training.size_recall import SMALL_OUTCOME_PIXELS
@@ -125,19 +131,22 @@ def class_weights(labels: np.ndarray, power: float, num_classes: int) -> torch.T
 
 class Batch(NamedTuple):
     """Working-size training images: depth (N, h, w) metres, valid fraction, labels (long),
-    intrinsics (N, 4) or None, near-side depth (N, h, w) or None."""
+    intrinsics (N, 4) or None, near-side depth (N, h, w) or None, object distances (N, h, w,
+    ``overlaps.object_distance``) or None."""
     depth: torch.Tensor
     valid: torch.Tensor
     labels: torch.Tensor
     intrinsics: torch.Tensor | None = None
     nearest: torch.Tensor | None = None
+    object_distance: torch.Tensor | None = None
 
 
 def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
             gen: torch.Generator, noise_level: float = 1.0,
             intrinsics: torch.Tensor | None = None, nearest: torch.Tensor | None = None,
             holes: float = 0.0, roll_deg: float = 0.0,
-            roll_measured: tuple[torch.Tensor, torch.Tensor] | None = None) -> Batch:
+            roll_measured: tuple[torch.Tensor, torch.Tensor] | None = None,
+            object_distance: torch.Tensor | None = None) -> Batch:
     """Batch augmentation that keeps labels honest. depth/valid float (N,h,w), labels long.
 
     ``noise_level`` (``TrainConfig.aug_noise``): each image gets re-drawn axial noise of
@@ -161,7 +170,11 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     rolled U(-roll_deg, roll_deg) about its optical axis (``roll.roll_images``: about the
     principal point, corners coming into view without depth or label); drawn only when
     above 0, so 0 leaves the stream as it was. ``roll_measured``: the images'
-    ``roll.measure_images``, if already at hand."""
+    ``roll.measure_images``, if already at hand.
+
+    ``object_distance`` (N, h, w), the auxiliary target, moves as the labels do (mirror,
+    shift; 0 where the shift uncovers); it draws nothing. Not with the roll
+    (``TrainConfig.validate`` refuses the pair)."""
     n = depth.shape[0]
     if roll_deg > 0:  # first, so that its interpolation does not smooth the noise drawn below
         depth, valid, labels, nearest = roll_images(draw_roll(n, roll_deg, gen), intrinsics,
@@ -173,6 +186,9 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
         nearest = torch.where(flip[:, None, None], nearest.flip(-1), nearest)
     valid = torch.where(flip[:, None, None], valid.flip(-1), valid)
     labels = torch.where(flip[:, None, None], labels.flip(-1), labels)
+    if object_distance is not None:
+        object_distance = torch.where(flip[:, None, None], object_distance.flip(-1),
+                                      object_distance)
     if intrinsics is not None:
         intrinsics = intrinsics.clone()
         intrinsics[:, 2] = torch.where(flip, -intrinsics[:, 2], intrinsics[:, 2])
@@ -185,6 +201,9 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
         if nearest is not None:
             nearest = nearest.roll((dy, dx), (1, 2))
             moved.append((nearest, 0.0))
+        if object_distance is not None:
+            object_distance = object_distance.roll((dy, dx), (1, 2))
+            moved.append((object_distance, 0.0))
         for t, fill in moved:
             if dy > 0:
                 t[:, :dy] = fill
@@ -212,7 +231,7 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
         nearest = nearest * scale + axial_noise(nearest, level, gen)
     if holes > 0:
         valid, labels = punch_holes(valid, labels, holes, gen)
-    return Batch(depth, valid, labels, intrinsics, nearest)
+    return Batch(depth, valid, labels, intrinsics, nearest, object_distance)
 
 
 def fitted_epochs(epochs: int, epoch_s: float, max_minutes: float) -> int:
@@ -306,17 +325,18 @@ def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
 
     batch = Batch(tensor("depth", np.float32), tensor("valid", np.float32),
                   tensor("labels", np.int64), tensor("intrinsics", np.float32),
-                  tensor("nearest", np.float32))
+                  tensor("nearest", np.float32), tensor(OBJECT_DISTANCE, np.float32))
     if gen is not None:
         measured = ((tensor(ROLL_NOISE, np.float32), cached_edges(arrays, idx))
                     if roll_deg > 0 and ROLL_NOISE in arrays and ROLL_EDGES in arrays
                     else None)
         batch = augment(*batch[:3], gen, noise_level, batch.intrinsics, batch.nearest, holes,
-                        roll_deg, measured)
+                        roll_deg, measured, batch.object_distance)
     return batch
 
 
 ROLL_NOISE, ROLL_EDGES = "roll_noise", "roll_edges"
+OBJECT_DISTANCE = "object_distance"  # the cached arrays' key of the auxiliary target
 
 
 def measure_for_roll(arrays: dict, chunk: int = 256) -> None:
@@ -404,17 +424,27 @@ def faster_layout(cfg: TrainConfig, arrays: dict, norm: dict, model_args: dict,
 
 def optimise_step(model, optim, x: torch.Tensor, labels: torch.Tensor,
                   weights: torch.Tensor | None, autocast, scaler, lovasz_weight: float = 0.0,
-                  pixel_weights: torch.Tensor | None = None) -> torch.Tensor:
+                  pixel_weights: torch.Tensor | None = None,
+                  object_distance: tuple[ObjectDistanceHead, torch.Tensor, float] | None = None
+                  ) -> torch.Tensor:
     """Forward (under ``autocast``), class-weighted cross-entropy ignoring 255 (per pixel
     weighted by ``pixel_weights`` too when given, ``losses.object_balance_weights``; plus
-    ``lovasz_weight`` x the per-image outcome IoU loss, ``losses.py``), backward and one
-    optimiser step (through the grad scaler when there is one). Returns the loss."""
+    ``lovasz_weight`` x the per-image outcome IoU loss, ``losses.py``; plus, with
+    ``object_distance`` = (head, target in pixels, weight), that weight x the head's
+    ``losses.object_distance_loss``), backward and one optimiser step (through the grad
+    scaler when there is one; the optimiser holds the head's weights too). Returns the loss."""
     with autocast():
         logits = model(x)
+        if object_distance is not None:
+            head, target_px, distance_weight = object_distance
+            distance_logits = head(labels.shape[-2:])
     logits = logits.float()          # both losses in fp32; one cast, not one per loss
     loss = weighted_cross_entropy(logits, labels, weights, pixel_weights)
     if lovasz_weight > 0:
         loss = loss + lovasz_weight * outcome_lovasz_loss(logits, labels)
+    if object_distance is not None:
+        loss = loss + distance_weight * object_distance_loss(
+            distance_logits, target_px, labels, OBJECT_DISTANCE_CLIP_PX)
     optim.zero_grad(set_to_none=True)
     if scaler is not None:
         scaler.scale(loss).backward()
@@ -444,15 +474,14 @@ def validate(model, arrays: dict, truth_present: np.ndarray, device, norm, batch
     conf = np.zeros((k, k), np.int64)
     counts = np.zeros((n, k), np.int64)
     for s in range(0, n, batch_size):
-        depth, valid, _, intrinsics, nearest = gather_batch(
-            arrays, np.arange(s, min(s + batch_size, n)), None)
-        pred = model(network_input(depth, valid, norm, intrinsics, nearest=nearest).to(device)
-                     ).argmax(1).cpu().numpy()
+        batch = gather_batch(arrays, np.arange(s, min(s + batch_size, n)), None)
+        pred = model(network_input(batch.depth, batch.valid, norm, batch.intrinsics,
+                                   nearest=batch.nearest).to(device)).argmax(1).cpu().numpy()
         # As inference does: fragments absorbed first, then no depth -> background.
         fragments = fragment_threshold(*pred.shape[1:])
         pred = np.stack([absorb_fragments(p.astype(np.uint8), fragments, table=table)
                          for p in pred])
-        pred[valid.numpy() == 0] = BACKGROUND
+        pred[batch.valid.numpy() == 0] = BACKGROUND
         truth = arrays["labels"][s:s + batch_size]
         for c in range(k):
             counts[s:s + len(pred), c] = (pred == c).reshape(len(pred), -1).sum(1)
@@ -554,16 +583,18 @@ def touching_objects_sample_weights(run_dir: Path, manifest: dict, indices: np.n
 
 
 def training_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator, cfg: TrainConfig,
-                   aug_noise: float, norm: dict) -> tuple[torch.Tensor, torch.Tensor]:
-    """The network input and labels of the training images ``idx``: whole images
-    (``gather_batch``, augmented when ``cfg.augment``) or one crop of each
-    (``crops.crop_batch``, with ``cfg.train_crop``)."""
+                   aug_noise: float, norm: dict
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The network input, labels and object distances (None unless ``arrays`` holds them) of
+    the training images ``idx``: whole images (``gather_batch``, augmented when
+    ``cfg.augment``) or one crop of each (``crops.crop_batch``, with ``cfg.train_crop``)."""
     if cfg.train_crop is not None:
-        return crop_batch(arrays, idx, cfg.train_crop, gen, aug_noise, norm, cfg.aug_holes,
-                          cfg.aug_roll_deg)
-    depth, valid, labels, intrinsics, nearest = gather_batch(
-        arrays, idx, gen if cfg.augment else None, aug_noise, cfg.aug_holes, cfg.aug_roll_deg)
-    return network_input(depth, valid, norm, intrinsics, nearest=nearest), labels
+        return (*crop_batch(arrays, idx, cfg.train_crop, gen, aug_noise, norm, cfg.aug_holes,
+                            cfg.aug_roll_deg), None)
+    batch = gather_batch(arrays, idx, gen if cfg.augment else None, aug_noise, cfg.aug_holes,
+                         cfg.aug_roll_deg)
+    return (network_input(batch.depth, batch.valid, norm, batch.intrinsics,
+                          nearest=batch.nearest), batch.labels, batch.object_distance)
 
 
 def combined_sample_weights(*weights: np.ndarray | None) -> np.ndarray | None:
@@ -583,7 +614,7 @@ RENAMED_TRAIN_FIELDS = {"near_rim_weight": "near_boundary_weight"}
 # Training fields added later, with the value every run before them had (not a difference).
 ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
                       "small_outcome_weight": 1.0, "touching_outcomes_weight": 1.0,
-                      "touching_objects_weight": 1.0,
+                      "touching_objects_weight": 1.0, "object_distance_weight": 0.0,
                       "relief_window_px": 0, "relief_smoothing_px": 0, "relief_base_px": 0,
                       "relief_noise_sds": 0.0, "nearest_height": False,
                       "relief_beneath_support": False, "aug_holes": 0.0,
@@ -677,6 +708,9 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         measure_planes(train_arrays, check_normalisation(norm))
     elif cfg.augment and cfg.aug_roll_deg > 0:  # crops are turned in windows, measured there
         measure_for_roll(train_arrays)
+    if cfg.object_distance_weight:
+        train_arrays[OBJECT_DISTANCE] = object_distance_cache(
+            run_dir, manifest, train_arrays["indices"], "train", cfg.input_size)
     table = manifest_table(manifest)
     val_truth = _truth_present(manifest, val_arrays["indices"], table)
     weights = class_weights(train_arrays["labels"], cfg.class_weight_power,
@@ -704,8 +738,12 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
                                                    weights, autocast, scaler, device)
     memory_format = torch.channels_last if channels_last else torch.contiguous_format
     model = model.to(memory_format=memory_format)
-    optim = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     average = WeightAverage(model, cfg.ema_decay)
+    # After the average's copy, which must not carry the head's hook.
+    distance_head = (ObjectDistanceHead(model).to(device, memory_format=memory_format)
+                     if cfg.object_distance_weight else None)
+    trained = [*model.parameters(), *(distance_head.parameters() if distance_head else ())]
+    optim = torch.optim.AdamW(trained, lr=cfg.lr, weight_decay=cfg.weight_decay)
     print(f"train: {device.type}, {'fp32' if precision == 'fp32' else precision + ' autocast'}, "
           f"{'channels-last' if channels_last else 'contiguous'} activations ({layout_note})")
 
@@ -730,6 +768,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         model.load_state_dict(state.optimizer_state["raw_weights"])
         optim.load_state_dict(state.optimizer_state["optimizer"])
         average.updates = int(state.optimizer_state["average_updates"])
+        if distance_head is not None:
+            distance_head.load_state_dict(state.optimizer_state["object_distance_head"])
         history = state.extra["history"]
         start_epoch = len(history)
         schedule_epochs = int(state.extra.get("schedule_epochs", cfg.epochs))
@@ -748,15 +788,17 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         t_epoch = time.perf_counter()
         for b in bar:
             idx = np.sort(order[b * cfg.batch_size:(b + 1) * cfg.batch_size])
-            x, labels = training_batch(train_arrays, idx, gen, cfg, aug_noise, norm)
+            x, labels, distance = training_batch(train_arrays, idx, gen, cfg, aug_noise, norm)
             x, labels = x.to(device, memory_format=memory_format), labels.to(device)
+            aux = ((distance_head, distance.to(device), cfg.object_distance_weight)
+                   if distance_head is not None else None)
             for group in optim.param_groups:
                 group["lr"] = lr_at(epoch * steps_per_epoch + b, total_steps, cfg.lr)
             balance = (object_balance_weights(labels, outcome_ids, cfg.object_balance_pixels,
                                               OBJECT_BALANCE_MAX_WEIGHT)
                        if cfg.object_balance_pixels else None)
             loss = optimise_step(model, optim, x, labels, weights, autocast, scaler,
-                                 cfg.lovasz_weight, balance)
+                                 cfg.lovasz_weight, balance, aux)
             average.update(model)
             losses.append(loss.item())
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
@@ -787,6 +829,8 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
             checkpoint.save(best_path, average.module, **common, extra=extra)
         training_state = {"optimizer": optim.state_dict(), "raw_weights": model.state_dict(),
                           "average_updates": average.updates}
+        if distance_head is not None:
+            training_state["object_distance_head"] = distance_head.state_dict()
         checkpoint.save(last_path, average.module, **common, optimizer_state=training_state,
                         extra=extra)
         save_json(out / "history.json", history)
