@@ -1,4 +1,6 @@
-"""Which frames show two objects touching in the image, whatever their outcomes.
+"""Each frame's objects cast again with ids of their own: which frames show two objects
+touching in the image, whatever their outcomes, and each object pixel's distance to anything
+that is not the same object.
 
 Why: drawing the frames where two *outcomes* touch more often (``--touching-outcomes-weight``)
 fixed two default images where a success box meets a stuck one and broke two stacks of success
@@ -8,8 +10,9 @@ objects again, each with an id of its own, at the working size: a frame counts w
 objects' pixels are 4-neighbours (one resting on, leaning on or seen in front of the other).
 The cast uses the stored simulation, outcomes and camera, so it needs no re-render; the
 scenery drawn per frame (neighbouring totes) is left out. Drawn 3x on the default task, these
-frames did not get the stacked boxes right either; the id images are also what an
-object-boundary target would need.
+frames did not get the stacked boxes right either. ``object_distance`` turns the id images
+into the training-only target of ``--object-distance-weight`` (``losses.ObjectDistanceHead``),
+which did not get them right either (docs/experiments.md).
 """
 
 from __future__ import annotations
