@@ -238,7 +238,7 @@ def test_the_training_loop_measuring_its_images_once_turns_them_the_same(monkeyp
     monkeypatch.setattr(training.roll, "measure_images", measured_again)
     cached = gather_batch(arrays, idx, torch.Generator().manual_seed(7), roll_deg=15.0)
     for got, want in zip(cached, turned):
-        assert torch.equal(got, want)
+        assert (got is None and want is None) or torch.equal(got, want)
 
 
 def test_cached_edges_come_back_as_measured_for_any_image_width():

@@ -258,10 +258,10 @@ def test_augmentation_moves_the_intrinsics_with_the_image():
     n = 16
     depth = torch.from_numpy(np.stack([one] * n))
     k = torch.from_numpy(np.stack([camera.normalised()] * n))
-    out, valid, moved_box, k_out, _ = augment(depth.clone(), torch.ones_like(depth),
-                                              torch.from_numpy(np.stack([box] * n)),
-                                              torch.Generator().manual_seed(3),
-                                              noise_level=0.0, intrinsics=k)
+    out, valid, moved_box, k_out = augment(depth.clone(), torch.ones_like(depth),
+                                           torch.from_numpy(np.stack([box] * n)),
+                                           torch.Generator().manual_seed(3),
+                                           noise_level=0.0, intrinsics=k)[:4]
     truth = torch.where(moved_box == 1, 0.25, 0.0)
     seen = (valid > 0) & (moved_box != 255)
 
