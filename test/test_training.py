@@ -435,7 +435,7 @@ def test_object_distance_dips_to_one_along_the_seam_of_two_touching_objects(smal
     assert (small_run / "cache" / "train_160x120_object_distance.npz").is_file()
     assert np.array_equal(object_distance_cache(small_run, manifest, indices, "train",
                                                 (160, 120)), distance)
-    with pytest.raises(ValueError, match="other images"):
+    with pytest.raises(ValueError, match="other images, another size"):
         object_distance_cache(small_run, manifest, indices[:-1], "train", (160, 120))
     with pytest.raises(ConfigError, match="train.object_distance_weight"):
         TrainConfig(object_distance_weight=0.5, aug_roll_deg=15.0).validate()
@@ -482,6 +482,9 @@ def test_object_distance_head_trains_the_features_and_stays_out_of_the_checkpoin
     assert net.stem[0].weight.grad.abs().sum() > 0       # the target reaches the features
     with pytest.raises(RuntimeError, match="forward first"):
         head((24, 32))                                   # one readout per forward
+    head.remove()
+    net(torch.randn(2, 3, 24, 32))
+    assert not net.head._forward_pre_hooks and head._features is None   # detached
 
     run = tmp_path / "run"
     r = _cli("train", "--out", str(run), "--dataset-from", str(small_run), "--epochs", "1",
@@ -511,9 +514,21 @@ def test_object_distance_head_trains_the_features_and_stays_out_of_the_checkpoin
     with pytest.raises(RuntimeError, match="interrupted"):
         train_module.train(run, cfg, out=tmp_path / "again", progress=False)
     monkeypatch.setattr(train_module, "validate", real_validate)
+    saved_head = checkpoint.load(tmp_path / "again" / "last.pt").optimizer_state[
+        "object_distance_head"]
+    loaded = []
+
+    class RecordingHead(ObjectDistanceHead):
+        def load_state_dict(self, state, *args, **kwargs):
+            loaded.append(state)
+            return super().load_state_dict(state, *args, **kwargs)
+
+    monkeypatch.setattr(train_module, "ObjectDistanceHead", RecordingHead)
     train_module.train(run, cfg, out=tmp_path / "again", progress=False)
     out = capsys.readouterr().out
     assert "resuming from" in out and "after epoch 1" in out
+    assert len(loaded) == 1 and all(torch.equal(loaded[0][k], saved_head[k])
+                                    for k in saved_head)     # the head's own weights, back
     assert len(json.loads((tmp_path / "again" / "history.json").read_text())) == 2
 
 

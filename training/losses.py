@@ -109,6 +109,11 @@ class ObjectDistanceHead(torch.nn.Module):
     def _keep(self, _module, args) -> None:
         self._features = args[0]
 
+    def remove(self) -> None:
+        """Detach from the network: its forwards no longer keep their features here."""
+        self._hook.remove()
+        self._features = None
+
     def forward(self, size: tuple[int, int]) -> torch.Tensor:
         """(N, h, w) logits of the last network forward's features, at ``size`` (h, w)."""
         if self._features is None:

@@ -17,6 +17,7 @@ which did not get them right either (docs/experiments.md).
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -102,10 +103,10 @@ OBJECT_DISTANCE_CLIP_PX = 6
 
 def object_distance(ids: np.ndarray, clip_px: int = OBJECT_DISTANCE_CLIP_PX) -> np.ndarray:
     """(H, W) uint8: for each object pixel of an id image, its distance in pixels (1 on its
-    outline) to the nearest pixel that is not the same object, clipped at ``clip_px``; 0
-    off the objects. Where two objects meet, both sides of the seam read 1, as against a
-    background: the per-object shape a semantic label cannot give (two touching boxes of one
-    outcome are one region of labels)."""
+    outline; OpenCV's 3 x 3 mask, so diagonals are approximated, rounded) to the nearest pixel
+    that is not the same object, clipped at ``clip_px``; 0 off the objects. Where two objects
+    meet, both sides of the seam read 1, as against a background: the per-object shape a
+    semantic label cannot give (two touching boxes of one outcome are one region of labels)."""
     out = np.zeros(ids.shape, np.uint8)
     for object_id in np.unique(ids[ids >= FIRST_OBJECT_ID]):
         inside = ids == object_id
@@ -130,19 +131,25 @@ def object_distance_images(data_dir: Path, manifest: dict, episodes: np.ndarray,
 def object_distance_cache(run_dir: Path, manifest: dict, indices: np.ndarray, split: str,
                           size: tuple[int, int]) -> np.ndarray:
     """``object_distance_images`` of a split's images ``indices`` (the working-size cache's),
-    kept in a file of its own beside that cache (about 2 min for 19,000 default frames,
-    made once, written atomically); a file that holds other images is refused."""
+    kept in a file of its own beside that cache (under a minute for 19,000 default frames,
+    made once, written atomically under a name of this process's own, since runs made with
+    ``--dataset-from`` share the cache folder); a file of other images, another size or
+    another clip is refused."""
     path = Path(run_dir) / "cache" / f"{split}_{size[0]}x{size[1]}_object_distance.npz"
     if not path.exists():
         print(f"train: casting the {len(indices)} {split} frames' objects again for their "
               f"distances ({path.name})")
         distance = object_distance_images(Path(run_dir), manifest, indices, size)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.stem + ".tmp.npz")
-        np.savez_compressed(tmp, indices=np.asarray(indices), object_distance=distance)
+        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+        np.savez_compressed(tmp, indices=np.asarray(indices), object_distance=distance,
+                            clip_px=OBJECT_DISTANCE_CLIP_PX)
         tmp.replace(path)
     with np.load(path) as data:
-        if not np.array_equal(data["indices"], indices):
-            raise ValueError(f"{path} holds other images than the {split} cache; delete it to "
-                             "rebuild it")
-        return data["object_distance"]
+        stored = data["object_distance"]
+        if (not np.array_equal(data["indices"], indices)
+                or stored.shape != (len(indices), size[1], size[0])
+                or int(data["clip_px"]) != OBJECT_DISTANCE_CLIP_PX):
+            raise ValueError(f"{path} holds other images, another size or another clip than "
+                             f"the {split} cache needs; delete it to rebuild it")
+        return stored

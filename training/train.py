@@ -834,16 +834,20 @@ def train(run_dir: Path, cfg: TrainConfig, out: Path | None = None, resume: bool
         checkpoint.save(last_path, average.module, **common, optimizer_state=training_state,
                         extra=extra)
         save_json(out / "history.json", history)
-        plot_curves(out / "training_curves.png", history, cfg.lovasz_weight)
+        plot_curves(out / "training_curves.png", history, cfg.lovasz_weight,
+                    cfg.object_distance_weight)
         if epoch + 1 >= schedule_epochs:  # the range above may be longer than the fit
             break
         if (time.perf_counter() - started) / 60 > cfg.max_minutes:  # slower than epoch 1
             print(f"stopping: the {cfg.max_minutes} min budget is spent; best kept")
             break
+    if distance_head is not None:
+        distance_head.remove()
     return best_path
 
 
-def plot_curves(path: Path, history: list[dict], lovasz_weight: float = 0.0) -> None:
+def plot_curves(path: Path, history: list[dict], lovasz_weight: float = 0.0,
+                object_distance_weight: float = 0.0) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -854,7 +858,9 @@ def plot_curves(path: Path, history: list[dict], lovasz_weight: float = 0.0) -> 
     a.plot(epochs, [h["train_loss"] for h in history], "o-")
     a.set_xlabel("epoch")
     a.set_ylabel("train loss (weighted CE"
-                 + (f" + {lovasz_weight:g} x IoU)" if lovasz_weight else ")"))
+                 + (f" + {lovasz_weight:g} x IoU" if lovasz_weight else "")
+                 + (f" + {object_distance_weight:g} x distance" if object_distance_weight
+                    else "") + ")")
     a.set_yscale("log")
     b.plot(epochs, [h["image_all_correct"] for h in history], "o-", label="image all-correct")
     b.plot(epochs, [h["pixel_miou"] for h in history], "s-", label="pixel mIoU")
