@@ -147,9 +147,10 @@ def object_distance_cache(run_dir: Path, manifest: dict, indices: np.ndarray, sp
         tmp.replace(path)
     with np.load(path) as data:
         stored = data["object_distance"]
+        clip_px = int(data["clip_px"]) if "clip_px" in data.files else None  # older files
         if (not np.array_equal(data["indices"], indices)
                 or stored.shape != (len(indices), size[1], size[0])
-                or int(data["clip_px"]) != OBJECT_DISTANCE_CLIP_PX):
+                or clip_px != OBJECT_DISTANCE_CLIP_PX):
             raise ValueError(f"{path} holds other images, another size or another clip than "
                              f"the {split} cache needs; delete it to rebuild it")
         return stored
