@@ -14,6 +14,11 @@ A random-init model labels everything background, so its post stage (fragments, 
 presence, connected components: ``OutcomeSegmenter.postprocess``) is also timed on the
 dataset's ground-truth labels at the working size, which is what a trained model would produce.
 
+With ``--model <name>`` the default task's model is timed beside it (``--reference``), ONNX
+Runtime on the first thread count, on its own frames, in the same rotation: issue 20's
+inference figure is that no shipped model costs more than the default's ``segment()``, and on
+a shared machine whose speed drifts by 2x over a day only a ratio within one run says so.
+
 Writes the ``inference`` section of bench/results.json (``inference.<name>`` for
 ``--model <name>``).
 """
@@ -42,6 +47,7 @@ from common import (  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 RUN_DIR = REPO / "runs" / "default"
 SIZE = (640, 480)  # (W, H)
+MODEL, REFERENCE = "model", "reference"  # the model measured; the one it is compared with
 
 
 # ---- shared with bench/node.py -------------------------------------------------------------
@@ -202,7 +208,13 @@ def main() -> None:
     parser.add_argument("--model", default="default",
                         help="a shipped model's name (default: %(default)s); its frames come "
                              "from runs/<name>, else synthetic ones")
+    parser.add_argument("--reference", default=None,
+                        help="a shipped model timed beside --model (ONNX, the first thread "
+                             "count, its own frames) for the ratio of the two; default: the "
+                             "default task's model when --model is another, 'none' for none")
     args = parser.parse_args()
+    if args.reference is None:
+        args.reference = "none" if args.model == "default" else "default"
     if args.quick:
         args.frames, args.images, args.warmup = min(args.frames, 60), min(args.images, 20), 5
     command = "python bench/inference.py " + " ".join(sys.argv[1:])
@@ -213,30 +225,46 @@ def main() -> None:
 
     from task_outcome_ros.inference import OutcomeSegmenter, resolve_model_path
 
+    def run_dir(name: str) -> Path:
+        return RUN_DIR if name == "default" else REPO / "runs" / name
+
     default = args.model == "default"
     shipped = resolve_model_path(None if default else args.model)
     threads = [int(t) for t in args.threads.split(",")]
     load_start = load_average()
-    frames, true_labels, cameras, frames_desc = load_frames(
-        args.images, RUN_DIR if default else REPO / "runs" / args.model)
+    frames, true_labels, cameras, frames_desc = {}, {}, {}, {}
+    frames[MODEL], true_labels[MODEL], cameras[MODEL], frames_desc[MODEL] = load_frames(
+        args.images, run_dir(args.model))
+    reference = None if args.reference == "none" else args.reference
+    if reference is not None:
+        frames[REFERENCE], true_labels[REFERENCE], cameras[REFERENCE], frames_desc[REFERENCE] = \
+            load_frames(args.images, run_dir(reference))
     with tempfile.TemporaryDirectory(prefix="bench_inference_") as tmp:
         model_path, model_desc = prepare_model(Path(tmp), shipped)
-        configs = [(b, t) for t in threads for b in ("torch", "onnx")]
+        paths = {MODEL: model_path}
+        # (which model, backend, threads); the reference only as issue 20 states its figure.
+        configs = [(MODEL, b, t) for t in threads for b in ("torch", "onnx")]
+        if reference is not None:
+            reference_dir = Path(tmp) / "reference"
+            reference_dir.mkdir()
+            paths[REFERENCE], reference_desc = prepare_model(
+                reference_dir, resolve_model_path(None if reference == "default" else reference))
+            configs.append((REFERENCE, "onnx", threads[0]))
         segs = {}
-        for backend, n in configs:
-            segs[backend, n] = OutcomeSegmenter(model_path, backend=backend, num_threads=n)
-            assert segs[backend, n].backend == backend, segs[backend, n].backend_reason
+        for cfg in configs:
+            segs[cfg] = OutcomeSegmenter(paths[cfg[0]], backend=cfg[1], num_threads=cfg[2])
+            assert segs[cfg].backend == cfg[1], segs[cfg].backend_reason
 
-        def use(backend: str, n: int):
-            torch.set_num_threads(n)  # torch's pool is global; set before every block
-            cv2.setNumThreads(n)
-            return segs[backend, n]
+        def use(cfg: tuple[str, str, int]):
+            torch.set_num_threads(cfg[2])  # torch's pool is global; set before every block
+            cv2.setNumThreads(cfg[2])
+            return segs[cfg]
 
-        for backend, n in configs:
-            seg = use(backend, n)
+        for cfg in configs:
+            seg, fr, cams = use(cfg), frames[cfg[0]], cameras[cfg[0]]
             for i in range(args.warmup):
-                seg.segment(frames[i % len(frames)], cameras[i % len(frames)])
-                staged(seg, frames[i % len(frames)], cameras[i % len(frames)])
+                seg.segment(fr[i % len(fr)], cams[i % len(fr)])
+                staged(seg, fr[i % len(fr)], cams[i % len(fr)])
 
         total = {c: [] for c in configs}
         stages = {c: ([], [], []) for c in configs}
@@ -247,10 +275,10 @@ def main() -> None:
         k = 0
         for r in range(rounds):
             for cfg in rotated(configs, r):
-                seg = use(*cfg)
+                seg, fr, cams = use(cfg), frames[cfg[0]], cameras[cfg[0]]
                 block = []
                 for _ in range(args.block):
-                    frame, camera = frames[k % len(frames)], cameras[k % len(frames)]
+                    frame, camera = fr[k % len(fr)], cams[k % len(fr)]
                     k += 1
                     c0, t0 = time.process_time(), time.perf_counter()
                     seg.segment(frame, camera)
@@ -264,18 +292,19 @@ def main() -> None:
 
         # Post stage on the true labels (what a trained model's output costs to summarise).
         post_true = None
-        if all(lab is not None for lab in true_labels):
+        if all(lab is not None for lab in true_labels[MODEL]):
             import cv2
 
             from task_outcome_ros.depth import sanitize_depth
             from task_outcome_ros.labels import BACKGROUND, IGNORE
 
-            seg = use("onnx", threads[0])
+            seg = use((MODEL, "onnx", threads[0]))
             times = []
-            for i in range(min(len(frames), 50) * 2):
-                depth = sanitize_depth(frames[i % len(frames)])
+            fr, truth = frames[MODEL], true_labels[MODEL]
+            for i in range(min(len(fr), 50) * 2):
+                depth = sanitize_depth(fr[i % len(fr)])
                 # The truth at the working size, as the network would answer (255 -> 0).
-                lab = cv2.resize(true_labels[i % len(frames)], seg.input_size,
+                lab = cv2.resize(truth[i % len(fr)], seg.input_size,
                                  interpolation=cv2.INTER_NEAREST)
                 lab[lab == IGNORE] = BACKGROUND
                 t0 = time.perf_counter()
@@ -283,32 +312,47 @@ def main() -> None:
                 times.append((time.perf_counter() - t0) * 1e3)
             post_true = percentiles(times)
 
-    results = {}
-    for backend, n in configs:
-        pre, net, post = stages[backend, n]
-        results[f"{backend}_threads{n}"] = {
-            "backend": backend, "threads": n,
-            "segment_ms": percentiles(total[backend, n]),
-            "segment_cpu_ms": percentiles(cpu[backend, n]),
-            "breakdown_ms": {"preprocess": percentiles(pre), "network": percentiles(net),
-                             "post": percentiles(post)}}
+    def summary(cfg: tuple[str, str, int]) -> dict:
+        pre, net, post = stages[cfg]
+        return {"backend": cfg[1], "threads": cfg[2],
+                "segment_ms": percentiles(total[cfg]), "segment_cpu_ms": percentiles(cpu[cfg]),
+                "breakdown_ms": {"preprocess": percentiles(pre), "network": percentiles(net),
+                                 "post": percentiles(post)}}
+
+    results = {f"{backend}_threads{n}": summary((who, backend, n))
+               for who, backend, n in configs if who == MODEL}
+    against = None
+    if reference is not None:
+        ref_cfg = (REFERENCE, "onnx", threads[0])
+        ref, own = summary(ref_cfg), results[f"onnx_threads{threads[0]}"]
+        against = {
+            "model": reference_desc, "frames": frames_desc[REFERENCE], **ref,
+            # this run's model over the reference, ONNX on threads[0]: whole segment() and
+            # its stages (p50s), and the median of block-mean ratios adjacent in time
+            "model_over_reference": {
+                "segment_p50": round(own["segment_ms"]["p50"] / ref["segment_ms"]["p50"], 2),
+                **{f"{stage}_p50": round(own["breakdown_ms"][stage]["p50"]
+                                         / ref["breakdown_ms"][stage]["p50"], 2)
+                   for stage in ("preprocess", "network", "post")},
+                "paired_ratio": round(float(np.median(np.divide(
+                    block_means[MODEL, "onnx", threads[0]], block_means[ref_cfg]))), 2)}}
     ratios = {}
     for n in threads:
         t, o = results[f"torch_threads{n}"], results[f"onnx_threads{n}"]
+        torch_blocks, onnx_blocks = block_means[MODEL, "torch", n], block_means[MODEL, "onnx", n]
         ratios[f"threads{n}"] = {
             "torch_over_onnx_p50": round(t["segment_ms"]["p50"] / o["segment_ms"]["p50"], 2),
             "torch_over_onnx_network_p50": round(
                 t["breakdown_ms"]["network"]["p50"] / o["breakdown_ms"]["network"]["p50"], 2),
             # median over rounds of (torch block mean / onnx block mean), adjacent in time
-            "paired_ratio": round(float(np.median(np.divide(block_means["torch", n],
-                                                            block_means["onnx", n]))), 2)}
+            "paired_ratio": round(float(np.median(np.divide(torch_blocks, onnx_blocks))), 2)}
     if len(threads) > 1:
         for b in ("torch", "onnx"):
             a, z = results[f"{b}_threads{threads[0]}"], results[f"{b}_threads{threads[-1]}"]
             ratios[f"{b}_threads{threads[0]}_over_threads{threads[-1]}_p50"] = round(
                 a["segment_ms"]["p50"] / z["segment_ms"]["p50"], 2)
     record("inference" if default else f"inference.{args.model}", {
-        "model": model_desc, "frames": frames_desc, "frame_size": list(SIZE),
+        "model": model_desc, "frames": frames_desc[MODEL], "frame_size": list(SIZE),
         "working_size": list(segs[configs[0]].input_size),
         "timed_frames_per_config": len(total[configs[0]]), "block": args.block,
         "warmup_per_config": args.warmup, "quick": args.quick, "wall_s": round(wall, 1),
@@ -316,7 +360,7 @@ def main() -> None:
         "versions": {"torch": torch.__version__, "onnxruntime": onnxruntime.__version__,
                      "opencv": cv2.__version__, "numpy": np.__version__},
         "configs": results, "ratios": ratios,
-        "post_on_true_labels_ms": post_true,
+        "post_on_true_labels_ms": post_true, "reference": against,
         "note": ("segment_ms = one OutcomeSegmenter.segment() call on a 640x480 float32 frame; "
                  "segment_cpu_ms = process CPU time of that call, all threads (ORT worker "
                  "threads spin-wait, so it can exceed the wall time x 1); "

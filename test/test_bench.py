@@ -69,6 +69,17 @@ def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, secti
         assert report["augment"]["holes"] == 0.5
     if section == "inference.shelf":  # its own working size, not the default model's
         assert report["working_size"] == [320, 240]
+        # ... and the default model timed beside it, as many frames, for the ratio of the two
+        reference = report["reference"]
+        assert reference["segment_ms"]["n"] == timed and reference["segment_ms"]["min"] > 0.1
+        assert reference["backend"] == "onnx" and reference["threads"] == 1
+        ratio = reference["model_over_reference"]
+        assert ratio["segment_p50"] == pytest.approx(
+            report["configs"]["onnx_threads1"]["segment_ms"]["p50"]
+            / reference["segment_ms"]["p50"], abs=0.01)
+        assert 0 < ratio["paired_ratio"] < 100
+    elif section == "inference":  # nothing beside the default model unless asked
+        assert report["reference"] is None
 
 
 def test_quick_network_bench_times_every_architecture_it_names(tmp_path):
