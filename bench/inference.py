@@ -15,9 +15,9 @@ presence, connected components: ``OutcomeSegmenter.postprocess``) is also timed 
 dataset's ground-truth labels at the working size, which is what a trained model would produce.
 
 With ``--model <name>`` the default task's model is timed beside it (``--reference``), ONNX
-Runtime on the first thread count, on its own frames, in the same rotation: issue 20's
-inference figure is that no shipped model costs more than the default's ``segment()``, and on
-a shared machine whose speed drifts by 2x over a day only a ratio within one run says so.
+Runtime on the first thread count, on its own frames, in the same rotation: whether a task's
+model costs more than the default's ``segment()`` is the question, and on a shared machine
+whose speed drifts by 2x over a day only a ratio within one run answers it.
 
 Writes the ``inference`` section of bench/results.json (``inference.<name>`` for
 ``--model <name>``).
@@ -242,7 +242,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_inference_") as tmp:
         model_path, model_desc = prepare_model(Path(tmp), shipped)
         paths = {MODEL: model_path}
-        # (which model, backend, threads); the reference only as issue 20 states its figure.
+        # (which model, backend, threads); the reference on ONNX Runtime, one thread count.
         configs = [(MODEL, b, t) for t in threads for b in ("torch", "onnx")]
         if reference is not None:
             reference_dir = Path(tmp) / "reference"
