@@ -1,23 +1,27 @@
-"""Benchmark ``OutcomeSegmenter.segment`` on 640 x 480 depth: torch vs ONNX, 1 vs 2 threads.
+"""Benchmark ``OutcomeSegmenter.segment`` on 640 x 480 depth: torch vs ONNX, 1 vs 2 threads,
+and a task's model against the default model.
 
     python bench/inference.py                 # 300 timed frames per configuration (~1-3 min)
     python bench/inference.py --frames 500
     python bench/inference.py --quick         # a smoke run (~20 s)
     python bench/inference.py --model shelf   # another shipped model, on its own run's frames
 
-The four configurations (backend torch/onnx x threads 1/2) run interleaved in short blocks, in
-a rotating order, so a change in machine load hits them all alike; ``paired_ratio`` compares
-neighbouring blocks only. Each timed frame is one ``segment()`` call (the node's code path);
-the same frame run through its stages one by one (the segmenter's own preprocessing,
-network and ``postprocess``) gives the breakdown (preprocess / network / post).
+The configurations (backend torch/onnx x threads 1/2, and the reference model's) run
+interleaved in short blocks, in a rotating order, so a change in machine load hits them all
+alike; ``paired_ratio`` compares neighbouring blocks only. Each timed frame is one
+``segment()`` call (the node's code path); the same frame run through its stages one by one
+(the segmenter's own preprocessing, network and ``postprocess``) gives the breakdown
+(preprocess / network / post).
 A random-init model labels everything background, so its post stage (fragments, resize back,
 presence, connected components: ``OutcomeSegmenter.postprocess``) is also timed on the
 dataset's ground-truth labels at the working size, which is what a trained model would produce.
 
 With ``--model <name>`` the default task's model is timed beside it (``--reference``), ONNX
-Runtime on the first thread count, on its own frames, in the same rotation: whether a task's
-model costs more than the default's ``segment()`` is the question, and on a shared machine
-whose speed drifts by 2x over a day only a ratio within one run answers it.
+Runtime on the first thread count, on its own frames, its blocks next to the measured model's
+ONNX blocks on that thread count: whether a task's model costs more than the default's
+``segment()`` is the question, and on a shared machine whose speed drifted 1.7x within a day
+only a ratio within one run answers it. When either model's run folder is missing, both
+models get the same synthetic frames, so that the ratio compares models, not frames.
 
 Writes the ``inference`` section of bench/results.json (``inference.<name>`` for
 ``--model <name>``).
@@ -41,6 +45,7 @@ from common import (  # noqa: E402
     percentiles,
     record,
     rotated,
+    sha256,
     untrained_network,
 )
 
@@ -239,17 +244,24 @@ def main() -> None:
     if reference is not None:
         frames[REFERENCE], true_labels[REFERENCE], cameras[REFERENCE], frames_desc[REFERENCE] = \
             load_frames(args.images, run_dir(reference))
+        synthetic = [who for who in (MODEL, REFERENCE) if true_labels[who][0] is None]
+        if synthetic:  # frames of two kinds would time the frames as well as the models
+            keep = synthetic[0]
+            for table in (frames, true_labels, cameras, frames_desc):
+                table[MODEL] = table[REFERENCE] = table[keep]
     with tempfile.TemporaryDirectory(prefix="bench_inference_") as tmp:
         model_path, model_desc = prepare_model(Path(tmp), shipped)
         paths = {MODEL: model_path}
-        # (which model, backend, threads); the reference on ONNX Runtime, one thread count.
+        # (which model, backend, threads); the reference on ONNX Runtime, one thread count,
+        # right after the measured model's blocks of the same setup.
         configs = [(MODEL, b, t) for t in threads for b in ("torch", "onnx")]
         if reference is not None:
             reference_dir = Path(tmp) / "reference"
             reference_dir.mkdir()
-            paths[REFERENCE], reference_desc = prepare_model(
-                reference_dir, resolve_model_path(None if reference == "default" else reference))
-            configs.append((REFERENCE, "onnx", threads[0]))
+            reference_shipped = resolve_model_path(None if reference == "default" else reference)
+            paths[REFERENCE], reference_desc = prepare_model(reference_dir, reference_shipped)
+            configs.insert(configs.index((MODEL, "onnx", threads[0])) + 1,
+                           (REFERENCE, "onnx", threads[0]))
         segs = {}
         for cfg in configs:
             segs[cfg] = OutcomeSegmenter(paths[cfg[0]], backend=cfg[1], num_threads=cfg[2])
@@ -326,9 +338,10 @@ def main() -> None:
         ref_cfg = (REFERENCE, "onnx", threads[0])
         ref, own = summary(ref_cfg), results[f"onnx_threads{threads[0]}"]
         against = {
-            "model": reference_desc, "frames": frames_desc[REFERENCE], **ref,
+            "model": reference_desc, "frames": frames_desc[REFERENCE],
+            "sha256": sha256(reference_shipped) if reference_shipped.exists() else None, **ref,
             # this run's model over the reference, ONNX on threads[0]: whole segment() and
-            # its stages (p50s), and the median of block-mean ratios adjacent in time
+            # its stages (p50s), and the median of the ratios of their blocks within a round
             "model_over_reference": {
                 "segment_p50": round(own["segment_ms"]["p50"] / ref["segment_ms"]["p50"], 2),
                 **{f"{stage}_p50": round(own["breakdown_ms"][stage]["p50"]

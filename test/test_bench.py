@@ -73,6 +73,9 @@ def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, secti
         reference = report["reference"]
         assert reference["segment_ms"]["n"] == timed and reference["segment_ms"]["min"] > 0.1
         assert reference["backend"] == "onnx" and reference["threads"] == 1
+        assert reference["model"].startswith("shipped") and "outcome_fcn.pt" in reference["model"]
+        if "synthetic" in report["frames"] + reference["frames"]:  # no shelf run here (CI):
+            assert reference["frames"] == report["frames"]  # then both on the same frames
         ratio = reference["model_over_reference"]
         assert ratio["segment_p50"] == pytest.approx(
             report["configs"]["onnx_threads1"]["segment_ms"]["p50"]
