@@ -5,6 +5,7 @@ and a task's model against the default model.
     python bench/inference.py --frames 500
     python bench/inference.py --quick         # a smoke run (~20 s)
     python bench/inference.py --model shelf   # another shipped model, on its own run's frames
+    python bench/inference.py --model tote --static-camera 30   # the node's case: see below
 
 The configurations (backend torch/onnx x threads 1/2, and the reference model's) run
 interleaved in short blocks, in a rotating order, so a change in machine load hits them all
@@ -23,8 +24,14 @@ ONNX blocks on that thread count: whether a task's model costs more than the def
 only a ratio within one run answers it. When either model's run folder is missing, both
 models get the same synthetic frames, so that the ratio compares models, not frames.
 
+``--static-camera COPIES``: each frame comes COPIES times in a row with fresh 2 mm noise and
+the segmenters keep their support plane while it still fits (``reuse_floor_fit``, as the node
+does for a camera that does not move), so the plane is fitted once per COPIES frames. Without
+it every frame has its own camera and is fitted afresh: the worst case.
+
 Writes the ``inference`` section of bench/results.json (``inference.<name>`` for
-``--model <name>``).
+``--model <name>``; ``inference_static`` and ``inference_static.<name>`` with
+``--static-camera``).
 """
 
 from __future__ import annotations
@@ -177,6 +184,20 @@ def load_frames(n: int, run_dir: Path = RUN_DIR
             f"{n} synthetic frames (plane + boxes + 2 % NaN)")
 
 
+def repeat_as_static_camera(copies: int, *tables: dict) -> None:
+    """Each model's frames (``tables``: frames, true labels, cameras, descriptions, keyed by
+    model) as a static camera sees them: every frame ``copies`` times in a row, the copies with
+    fresh 2 mm Gaussian noise on their valid pixels (seed 0), the others as they were."""
+    frames, true_labels, cameras, frames_desc = tables
+    rng = np.random.default_rng(0)
+    for who in list(frames):
+        frames[who] = [np.where(np.isfinite(f), f + rng.normal(0.0, 0.002, f.shape), f)
+                       .astype(np.float32) for f in frames[who] for _ in range(copies)]
+        true_labels[who] = [lab for lab in true_labels[who] for _ in range(copies)]
+        cameras[who] = [cam for cam in cameras[who] for _ in range(copies)]
+        frames_desc[who] += f", each {copies} times in a row with fresh 2 mm noise"
+
+
 def load_average() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
@@ -217,7 +238,12 @@ def main() -> None:
                         help="a shipped model timed beside --model (ONNX, the first thread "
                              "count, its own frames) for the ratio of the two; default: the "
                              "default task's model when --model is another, 'none' for none")
+    parser.add_argument("--static-camera", type=int, default=0, metavar="COPIES",
+                        help="each frame COPIES times in a row with fresh 2 mm noise, the "
+                             "plane kept while it fits (default 0: every frame refitted)")
     args = parser.parse_args()
+    if args.static_camera < 0:
+        parser.error(f"--static-camera must be >= 0, got {args.static_camera}")
     if args.reference is None:
         args.reference = "none" if args.model == "default" else "default"
     if args.quick:
@@ -249,6 +275,8 @@ def main() -> None:
             keep = synthetic[0]
             for table in (frames, true_labels, cameras, frames_desc):
                 table[MODEL] = table[REFERENCE] = table[keep]
+    if args.static_camera:
+        repeat_as_static_camera(args.static_camera, frames, true_labels, cameras, frames_desc)
     with tempfile.TemporaryDirectory(prefix="bench_inference_") as tmp:
         model_path, model_desc = prepare_model(Path(tmp), shipped)
         paths = {MODEL: model_path}
@@ -264,7 +292,8 @@ def main() -> None:
                            (REFERENCE, "onnx", threads[0]))
         segs = {}
         for cfg in configs:
-            segs[cfg] = OutcomeSegmenter(paths[cfg[0]], backend=cfg[1], num_threads=cfg[2])
+            segs[cfg] = OutcomeSegmenter(paths[cfg[0]], backend=cfg[1], num_threads=cfg[2],
+                                         reuse_floor_fit=args.static_camera > 0)
             assert segs[cfg].backend == cfg[1], segs[cfg].backend_reason
 
         def use(cfg: tuple[str, str, int]):
@@ -284,14 +313,14 @@ def main() -> None:
         cpu = {c: [] for c in configs}  # process CPU time (all threads) per segment()
         rounds = -(-args.frames // args.block)
         start = time.perf_counter()
-        k = 0
+        k = {c: 0 for c in configs}  # each setup walks its frames in order (a static camera's)
         for r in range(rounds):
             for cfg in rotated(configs, r):
                 seg, fr, cams = use(cfg), frames[cfg[0]], cameras[cfg[0]]
                 block = []
                 for _ in range(args.block):
-                    frame, camera = fr[k % len(fr)], cams[k % len(fr)]
-                    k += 1
+                    frame, camera = fr[k[cfg] % len(fr)], cams[k[cfg] % len(fr)]
+                    k[cfg] += 1
                     c0, t0 = time.process_time(), time.perf_counter()
                     seg.segment(frame, camera)
                     block.append((time.perf_counter() - t0) * 1e3)
@@ -326,7 +355,10 @@ def main() -> None:
 
     def summary(cfg: tuple[str, str, int]) -> dict:
         pre, net, post = stages[cfg]
-        return {"backend": cfg[1], "threads": cfg[2],
+        tracker = segs[cfg].floor_tracker
+        planes = {} if tracker is None else {"planes_kept": tracker.reused,
+                                             "planes_fitted": tracker.refits}
+        return {"backend": cfg[1], "threads": cfg[2], **planes,
                 "segment_ms": percentiles(total[cfg]), "segment_cpu_ms": percentiles(cpu[cfg]),
                 "breakdown_ms": {"preprocess": percentiles(pre), "network": percentiles(net),
                                  "post": percentiles(post)}}
@@ -364,7 +396,9 @@ def main() -> None:
             a, z = results[f"{b}_threads{threads[0]}"], results[f"{b}_threads{threads[-1]}"]
             ratios[f"{b}_threads{threads[0]}_over_threads{threads[-1]}_p50"] = round(
                 a["segment_ms"]["p50"] / z["segment_ms"]["p50"], 2)
-    record("inference" if default else f"inference.{args.model}", {
+    base = "inference_static" if args.static_camera else "inference"
+    record(base if default else f"{base}.{args.model}", {
+        "static_camera_copies": args.static_camera,
         "model": model_desc, "frames": frames_desc[MODEL], "frame_size": list(SIZE),
         "working_size": list(segs[configs[0]].input_size),
         "timed_frames_per_config": len(total[configs[0]]), "block": args.block,

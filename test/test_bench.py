@@ -45,13 +45,16 @@ def _run(script: str, results: Path, *args: str) -> dict:
     ("roll_step.py", ("--quick",), "roll_step", 4),                    # --quick: 4 batches
     ("train_step.py", ("--quick", "--model", "tote"), "training.tote", 4),  # its 4 channels
     ("inference.py", ("--quick", "--threads", "1", "--model", "shelf"), "inference.shelf", 60),
+    ("inference.py", ("--quick", "--threads", "1", "--model", "tote", "--static-camera", "10"),
+     "inference_static.tote", 60),
 ])
 def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, section, timed):
     results = tmp_path / "results.json"
     report = _run(script, results, *args)[section]
     assert report["command"].startswith(f"python bench/{script}")
     assert report["machine"]["cores"] >= 1
-    timing_key = {"inference": "segment_ms", "training": "total"}.get(section.split(".")[0])
+    timing_key = {"inference": "segment_ms", "inference_static": "segment_ms",
+                  "training": "total"}.get(section.split(".")[0])
     timings = [v[timing_key] if timing_key else v for v in report["configs"].values()]
     # Every configuration timed as many runs as the quick mode asks for, each of real work.
     assert timings and all(t["n"] == timed and t["min"] > 0.1 for t in timings)
@@ -83,6 +86,10 @@ def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, secti
         assert 0 < ratio["paired_ratio"] < 100
     elif section == "inference":  # nothing beside the default model unless asked
         assert report["reference"] is None
+    if section.startswith("inference_static"):  # a static camera: the plane mostly kept
+        assert report["static_camera_copies"] == 10
+        for setup in [*report["configs"].values(), report["reference"]]:
+            assert setup["planes_fitted"] >= 1 and setup["planes_kept"] > setup["planes_fitted"]
 
 
 def test_quick_network_bench_times_every_architecture_it_names(tmp_path):
