@@ -17,13 +17,14 @@ which did not get them right either (docs/experiments.md).
 
 from __future__ import annotations
 
-import os
+import io
 from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from task_outcome_ros.checkpoint import atomic_write_bytes
 from task_outcome_ros.labels import BACKGROUND
 from training.discover import load_outcomes
 from training.fixture import episode_fixture
@@ -132,7 +133,7 @@ def object_distance_cache(run_dir: Path, manifest: dict, indices: np.ndarray, sp
                           size: tuple[int, int]) -> np.ndarray:
     """``object_distance_images`` of a split's images ``indices`` (the working-size cache's),
     kept in a file of its own beside that cache (under a minute for 19,000 default frames,
-    made once, written atomically under a name of this process's own, since runs made with
+    made once, written atomically through a temporary file of its own, since runs made with
     ``--dataset-from`` share the cache folder); a file of other images, another size or
     another clip is refused."""
     path = Path(run_dir) / "cache" / f"{split}_{size[0]}x{size[1]}_object_distance.npz"
@@ -140,11 +141,10 @@ def object_distance_cache(run_dir: Path, manifest: dict, indices: np.ndarray, sp
         print(f"train: casting the {len(indices)} {split} frames' objects again for their "
               f"distances ({path.name})")
         distance = object_distance_images(Path(run_dir), manifest, indices, size)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-        np.savez_compressed(tmp, indices=np.asarray(indices), object_distance=distance,
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, indices=np.asarray(indices), object_distance=distance,
                             clip_px=OBJECT_DISTANCE_CLIP_PX)
-        tmp.replace(path)
+        atomic_write_bytes(path, buffer.getvalue())
     with np.load(path) as data:
         stored = data["object_distance"]
         clip_px = int(data["clip_px"]) if "clip_px" in data.files else None  # older files
