@@ -92,6 +92,40 @@ def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, secti
             assert setup["planes_fitted"] >= 1 and setup["planes_kept"] > setup["planes_fitted"]
 
 
+def test_revision_bench_times_each_model_on_both_codes_in_its_own_process(tmp_path):
+    """bench/revision.py against HEAD: four (code, model) workers, each importing its own copy
+    of the package, as many frames each, and the ratios made from their timings."""
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True,
+                          text=True, check=True).stdout.strip()
+    report = _run("revision.py", tmp_path / "results.json", "--against", "HEAD", "--quick",
+                  "--model", "tote")["revision.tote"]
+    assert report["against"] == head and report["models"] == ["tote", "default"]
+    assert set(report["pairs"]) == {f"{code}/{m}" for code in ("here", head[:12])
+                                    for m in ("tote", "default")}
+    for pair in report["pairs"].values():
+        assert pair["segment_ms"]["n"] == 40 and pair["segment_ms"]["min"] > 0.1
+    shipped = REPO / "task_outcome_ros" / "models" / "outcome_fcn_tote.pt"
+    assert report["pairs"]["here/tote"]["model_sha256"] == hashlib.sha256(
+        shipped.read_bytes()).hexdigest()
+    tote = report["ratios"]["tote_here_over_default_at_revision"]
+    here, old = report["pairs"]["here/tote"], report["pairs"][f"{head[:12]}/default"]
+    assert tote["p50"] == pytest.approx(here["segment_ms"]["p50"] / old["segment_ms"]["p50"],
+                                        rel=0.02)
+    assert set(report["ratios"]) == {"tote_here_over_tote_at_revision",
+                                     "default_here_over_default_at_revision",
+                                     "tote_here_over_default_at_revision",
+                                     "tote_here_over_default_here"}
+    assert all(0 < r["paired"] < 100 for r in report["ratios"].values())
+
+
+def test_revision_bench_names_a_revision_git_does_not_know(tmp_path):
+    r = subprocess.run([sys.executable, str(BENCH / "revision.py"), "--against", "no-such-rev"],
+                       capture_output=True, text=True, timeout=60, cwd=REPO,
+                       env={**os.environ, "BENCH_RESULTS": str(tmp_path / "r.json")})
+    assert r.returncode == 2 and "no-such-rev" in r.stderr
+    assert not (tmp_path / "r.json").exists()
+
+
 def test_quick_network_bench_times_every_architecture_it_names(tmp_path):
     report = _run("networks.py", tmp_path / "results.json", "--quick")["networks"]
     assert report["command"] == "python bench/networks.py --quick"

@@ -1,0 +1,190 @@
+"""Benchmark this checkout's ``segment()`` against another revision's, in one run.
+
+    python bench/revision.py --against 983a4b8 --model tote      # ~3 min
+    python bench/revision.py --against 983a4b8 --quick           # a smoke run
+
+Why: an issue asks that a model's ``segment()`` "cost no more than today", and this machine's
+speed drifts 1.7x within a day, so only a ratio within one run answers it; when the code that
+runs the models changes, "today" is another revision's code, which one process cannot import
+beside this one. So each (code, model) pair runs in a worker process of its own
+(bench/_segment_worker.py): this checkout's code as it is, the revision's unpacked from
+``git archive`` (its package folder, shipped models included) into a temporary folder. Every
+worker times ONNX Runtime on one thread, as the node runs on one core, on the same frames
+(its model's task's run folder, as bench/inference.py loads them, with their camera_info). The
+workers wait on stdin and are asked for a block of frames one at a time, in a rotating order,
+so only one works at any moment and a change in machine load hits them all alike.
+
+The pairs: ``--model`` and ``--reference`` (default: the default task's model), each on this
+checkout's code and on the revision's. Writes ``revision.<model>`` in bench/results.json: each
+pair's timings, and ``ratios``: each model here over the same model on the revision (what the
+change of code did) and ``--model`` here over ``--reference`` on the revision (whether the
+model costs no more than the reference did), each as the ratio of p50s and as the median
+ratio of the two pairs' blocks within a round (``paired``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import percentiles, record, rotated, sha256  # noqa: E402
+from inference import load_frames  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+WORKER = Path(__file__).resolve().parent / "_segment_worker.py"
+HERE = "here"
+
+
+def resolve(revision: str) -> str:
+    """The full commit hash of ``revision``; ValueError naming it when git does not know it."""
+    done = subprocess.run(["git", "rev-parse", "--verify", "--quiet", revision + "^{commit}"],
+                          cwd=REPO, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise ValueError(f"git does not know the revision {revision!r} in {REPO}")
+    return done.stdout.strip()
+
+
+def unpack(commit: str, into: Path) -> Path:
+    """The revision's ``task_outcome_ros`` package (models included) unpacked under ``into``;
+    returns the folder to put on PYTHONPATH."""
+    archive = into / "code.tar"
+    with archive.open("wb") as out:
+        subprocess.run(["git", "archive", "--format=tar", commit, "task_outcome_ros"],
+                       cwd=REPO, stdout=out, check=True)
+    with tarfile.open(archive) as tar:
+        tar.extractall(into / "code", filter="data")
+    archive.unlink()
+    return into / "code"
+
+
+def save_frames(path: Path, depths: list[np.ndarray], cameras: list) -> None:
+    """Frames and their cameras for the workers (camera rows: w, h, fx, fy, cx, cy; 0s: none)."""
+    rows = [[0.0] * 6 if c is None else [c.width, c.height, c.fx, c.fy, c.cx, c.cy]
+            for c in cameras]
+    np.savez(path, depth=np.stack(depths), cameras=np.asarray(rows, np.float64))
+
+
+class Worker:
+    """A bench/_segment_worker.py process running ``model`` on the code under ``code``."""
+
+    def __init__(self, code: Path, model: str, frames: Path, warmup: int) -> None:
+        env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": "1"}
+        self.proc = subprocess.Popen(
+            [sys.executable, str(WORKER), "--model", model, "--frames", str(frames),
+             "--warmup", str(warmup)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            text=True, env=env, cwd=code)
+        hello = self.proc.stdout.readline()
+        if not hello:
+            raise RuntimeError(f"the worker for {model} on {code} ended before it was ready "
+                               f"(exit {self.proc.wait()}); see its stderr above")
+        self.info = json.loads(hello)
+        if not Path(self.info["code"]).resolve().is_relative_to(code.resolve()):
+            raise RuntimeError(f"the worker for {code} imported task_outcome_ros from "
+                               f"{self.info['code']}: PYTHONPATH did not take")
+
+    def block(self, n: int) -> list[float]:
+        self.proc.stdin.write(f"{n}\n")
+        self.proc.stdin.flush()
+        return json.loads(self.proc.stdout.readline())
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.stdin.write("quit\n")
+            self.proc.stdin.flush()
+            self.proc.wait(timeout=30)
+
+
+def ratios(times: dict, blocks: dict, a: tuple, b: tuple) -> dict:
+    """``a`` over ``b``: p50 over p50, and the median over rounds of their block means."""
+    return {"p50": round(float(np.median(times[a]) / np.median(times[b])), 3),
+            "paired": round(float(np.median(np.divide(blocks[a], blocks[b]))), 3)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--against", required=True, help="a git revision (hash, tag, branch)")
+    parser.add_argument("--model", default="default", help="a shipped model's name")
+    parser.add_argument("--reference", default="default",
+                        help="the model --model is compared with (default: %(default)s)")
+    parser.add_argument("--frames", type=int, default=300, help="timed frames per pair")
+    parser.add_argument("--block", type=int, default=10, help="frames per block")
+    parser.add_argument("--images", type=int, default=50, help="distinct frames per model")
+    parser.add_argument("--warmup", type=int, default=20, help="untimed frames per pair")
+    parser.add_argument("--quick", action="store_true", help="smoke run: 40 frames, 10 images")
+    args = parser.parse_args()
+    if args.quick:
+        args.frames, args.images, args.warmup = min(args.frames, 40), min(args.images, 10), 3
+    try:
+        commit = resolve(args.against)
+    except ValueError as exc:
+        parser.error(str(exc))
+    command = "python bench/revision.py " + " ".join(sys.argv[1:])
+    models = list(dict.fromkeys([args.model, args.reference]))
+
+    def run_dir(name: str) -> Path:
+        return REPO / "runs" / name
+
+    loaded = {m: load_frames(args.images, run_dir(m)) for m in models}
+    if any(loaded[m][1][0] is None for m in models):   # synthetic for one: the same for all
+        synthetic = next(loaded[m] for m in models if loaded[m][1][0] is None)
+        loaded = {m: synthetic for m in models}
+    with tempfile.TemporaryDirectory(prefix="bench_revision_") as tmp:
+        codes = {HERE: REPO, commit[:12]: unpack(commit, Path(tmp))}
+        workers = {}
+        try:
+            for m in models:
+                frames_file = Path(tmp) / f"frames_{m}.npz"
+                save_frames(frames_file, loaded[m][0], loaded[m][2])
+                for code_name, code in codes.items():
+                    workers[code_name, m] = Worker(code, m, frames_file, args.warmup)
+            pairs = list(workers)
+            times = {p: [] for p in pairs}
+            blocks = {p: [] for p in pairs}
+            start = time.perf_counter()
+            for r in range(-(-args.frames // args.block)):
+                for pair in rotated(pairs, r):
+                    block = workers[pair].block(args.block)
+                    times[pair] += block
+                    blocks[pair].append(float(np.mean(block)))
+            wall = time.perf_counter() - start
+            model_sha = {p: sha256(Path(workers[p].info["model"])) for p in pairs}
+        finally:
+            for worker in workers.values():
+                worker.close()
+
+    old = commit[:12]
+    result_ratios = {f"{m}_here_over_{m}_at_revision": ratios(times, blocks, (HERE, m), (old, m))
+                     for m in models}
+    if args.model != args.reference:
+        result_ratios[f"{args.model}_here_over_{args.reference}_at_revision"] = ratios(
+            times, blocks, (HERE, args.model), (old, args.reference))
+        result_ratios[f"{args.model}_here_over_{args.reference}_here"] = ratios(
+            times, blocks, (HERE, args.model), (HERE, args.reference))
+    section = "revision" if args.model == "default" else f"revision.{args.model}"
+    record(section, {
+        "against": commit, "models": models, "quick": args.quick, "wall_s": round(wall, 1),
+        "frames": {m: loaded[m][3] for m in models}, "block": args.block,
+        "warmup_per_pair": args.warmup,
+        "pairs": {f"{code}/{m}": {"segment_ms": percentiles(times[code, m]),
+                                  "model_sha256": model_sha[code, m]}
+                  for code, m in pairs},
+        "ratios": result_ratios,
+        "note": ("segment_ms = one OutcomeSegmenter.segment() call on a 640x480 frame with its "
+                 "camera_info, ONNX Runtime on one thread, each (code, model) pair in its own "
+                 "process; pairs interleaved in rotating blocks; here = this checkout's code"),
+    }, command)
+
+
+if __name__ == "__main__":
+    main()
