@@ -291,7 +291,7 @@ def heights_beneath_support(height: torch.Tensor, valid: torch.Tensor,
     ``support_above_floor``) -> the same, except that what lies more than
     ``BENEATH_SUPPORT_M`` below the table top is measured from the room floor beneath it.
 
-    Why: the local relief (``model.local_relief``) reads an object's height above the
+    Why: the local relief (``relief.local_relief``) reads an object's height above the
     morphological opening of the heights around it, and an object on the room floor seen
     beside the table top, which stands 0.7 m higher, is part of a surface the opening fits
     in (a window over the object, the table's edge and the table holds no lower point): it

@@ -18,16 +18,16 @@ Input channels (see ``DEFAULT_NORMALISATION``; the dict is stored in every check
    version of ``floor.fit_floor`` the network was trained on; a checkpoint without it was
    trained on version 1 (models up to 0.1.7) and keeps getting it. ``support_above_floor``
    (tasks on a table): heights from the table top when the room floor is in view too.
-3. local relief (``local_relief``): the height above the morphological opening of the heights
-   with a square window of ``relief_window_px`` working pixels, / ``height_scale_m``, in
-   [0, clip]. Present when the dict has ``relief_window_px`` (with a height channel). Why: the
+3. local relief (``relief.local_relief``): the height above the morphological opening of the
+   heights with a square window of ``relief_window_px`` working pixels, / ``height_scale_m``,
+   in [0, clip]. Present when the dict has ``relief_window_px`` (with a height channel). Why: the
    height channel measures from one support plane, so a 3 cm box on the room floor 0.75 m
    below a table reads -0.72 next to the floor's -0.75, a contrast lost in the table-to-floor
    step, while the same box on the table reads 0.03 against 0. The relief reads 0.03 for
    both: a small object stands out the same on any surface, by construction. Surfaces wider
    than the window (a table top, a tote's floor) read 0 up to their edges; narrow ones (walls)
    read their height. With ``relief_smoothing_px`` it is the relief of the heights' mean over
-   a square of valid pixels (``valid_mean``), so that sensor noise does not read as relief.
+   a square of valid pixels (``relief.valid_mean``), so that sensor noise does not read as relief.
    With ``"relief_beneath_support": True`` (and ``support_above_floor``), what lies more
    than 5 cm below the table top is measured from the room floor beneath it first
    (``floor.heights_beneath_support``): an object on the room floor seen right beside the
@@ -51,7 +51,6 @@ a second one, to twice the working size). ``preprocess`` (one numpy image) and
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import cv2
@@ -73,6 +72,7 @@ from task_outcome_ros.floor import (
     heights_beneath_support,
 )
 from task_outcome_ros.labels import DEFAULT_TABLE
+from task_outcome_ros.relief import local_relief
 
 IN_CHANNELS = 3
 # Cameras sit 1.6-2.4 m from the container (docs/interface.md §4): 2 m maps to 0, a metre to 1.
@@ -91,8 +91,6 @@ RELIEF_BENEATH_SUPPORT = "relief_beneath_support"
 RELIEF_WINDOW_RANGE = (3, 63)  # odd working pixels: a window centred on its pixel
 RELIEF_SMOOTHING_RANGE = (3, 15)  # odd working pixels of the relief's mean (local_relief)
 RELIEF_NOISE_SDS_MAX = 10.0  # local noise deviations the relief may be lowered by
-NOISE_STEP_M = 0.001  # local_noise_sd's median works on |residuals| in these steps ...
-NOISE_STEPS = 255     # ... up to this many (uint8, so OpenCV's median takes any window)
 _FLOOR_FITS = FLOOR_FITS
 # Every key a normalisation may carry. An unknown one is refused: it would be an input this
 # code does not build (a checkpoint from a newer version), and the network would run blind.
@@ -396,174 +394,6 @@ def network_input(depth: torch.Tensor, valid_fraction: torch.Tensor,
         if wants_nearest:
             channels.append((nearest_height / norm["height_scale_m"]).clamp(-clip, clip))
     return torch.stack(channels, dim=1)
-
-
-def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
-                 smoothing: int = 1, base: int | None = None,
-                 noise_sds: float = 0.0) -> torch.Tensor:
-    """(N, h, w) heights (metres) and validity -> height above their morphological opening
-    with a ``window`` x ``window`` square (metres, >= 0; 0 where invalid).
-
-    The opening (erosion, then dilation) keeps every surface a window fits on and flattens
-    what is narrower, so what remains is each small object's or wall's height above the
-    surface around it, whichever surface that is. Beyond the frame there is no support (the
-    erosion sees -inf there), so an object cut by the frame reads its height like one in
-    full view, while a surface reaching the frame still reads 0 up to its last pixel, carried
-    in by the dilation from half a window inside. Invalid pixels neither lower the erosion nor
-    raise the dilation; a window with no valid pixel leaves its pixel's relief 0. Inputs
-    carry no gradient.
-
-    ``smoothing`` > 1: the relief of the heights' mean over a ``smoothing`` x ``smoothing``
-    square of valid pixels (``valid_mean``). Why: the erosion is a minimum over a window's
-    pixels, so on a noisy flat surface it sits in the noise's low tail and the surface reads
-    a relief that grows with the noise (docs/experiments.md); the mean narrows that tail.
-
-    ``base``: the surface (the opening) is found on the heights' mean over a ``base`` x
-    ``base`` square instead, while each pixel's own height stays the ``smoothing`` mean. Why:
-    the erosion's low tail is what grows with the noise (far floor at 3x noise), and a wider
-    mean narrows it further without blurring a small object's own top as much. Measured on the
-    default task with base 7, it did not hold 3x noise better (docs/experiments.md).
-
-    ``noise_sds`` > 0 (with ``smoothing`` > 1): the relief minus that many deviations of the
-    smoothed heights' own noise, measured around each pixel (``local_noise_sd``). Why: on a
-    flat surface the relief is the erosion's low tail, a few noise deviations wide whatever
-    the noise, so subtracting a few measured deviations makes a noisy floor read about as
-    flat as a quiet one, while a small object keeps nearly all of its height (the noise is
-    measured by a median, which an object's edges barely move). A pixel whose ``smoothing``
-    square is not mostly valid reads no relief and holds up no surface (``majority_valid``):
-    there the mean averages little and an isolated pixel, its own mean, shows no residual for
-    the median to measure, so where a far floor fades out of range its isolated pixels read
-    their raw noise as relief (found at 3x noise)."""
-    raw = height.float()
-    if noise_sds:
-        valid = majority_valid(valid, smoothing)
-
-    def mean_over(square: int) -> torch.Tensor:
-        return valid_mean(raw, valid, square) if square > 1 else raw
-
-    height = mean_over(smoothing)
-    surface = height if base is None else mean_over(base)
-    inf = torch.tensor(float("inf"), device=height.device)
-    # max of -height with +inf beyond the frame = min of height with -inf beyond it
-    eroded = -square_max(-torch.where(valid, surface, inf), window, beyond=float("inf"))
-    eroded = torch.where(torch.isinf(eroded), -inf, eroded)  # no support: never wins below
-    relief = height - square_max(eroded, window)
-    if noise_sds:
-        relief = relief - noise_sds * local_noise_sd(raw, height, valid, window, smoothing)
-    return torch.where(valid & torch.isfinite(relief), relief.clamp_min(0.0),
-                       torch.zeros_like(height))
-
-
-def majority_valid(valid: torch.Tensor, window: int) -> torch.Tensor:
-    """Valid pixels more than half of whose centred ``window`` x ``window`` square, within
-    the frame, is valid."""
-    count = square_sum(valid.float(), window)
-    in_frame = square_sum(torch.ones_like(valid, dtype=torch.float32), window)
-    return valid & (count > in_frame / 2)
-
-
-def local_noise_sd(raw: torch.Tensor, smoothed: torch.Tensor, valid: torch.Tensor,
-                   window: int, smoothing: int) -> torch.Tensor:
-    """(N, h, w) heights, their ``smoothing`` x ``smoothing`` mean over valid pixels and the
-    validity -> a robust estimate of the noise deviation of each pixel's mean (metres).
-
-    The pixels' own deviation is the median over a ``window`` x ``window`` square of
-    |height - mean|, scaled to a deviation for Gaussian noise (1.4826, and sqrt(1 - 1/n) for
-    the mean's share of its own pixel, n = smoothing² as inside a valid surface); a pixel's
-    mean of k valid pixels has that divided by sqrt(k) (independent noise), so pixels with
-    fewer valid neighbours get the larger deviation they have. Invalid pixels enter the median
-    as a checkerboard of the lowest and highest steps, which cancel in pairs, so a window that
-    is partly invalid still measures its valid pixels' noise rather than sliding towards 0.
-    The median works on millimetre steps up to 255 mm (``NOISE_STEP_M``, ``NOISE_STEPS``):
-    uint8, which OpenCV's median filter takes at any window size."""
-    n = smoothing * smoothing
-    residual = torch.nan_to_num((raw - smoothed).abs(), nan=0.0, posinf=0.0)
-    steps = (residual / NOISE_STEP_M).round().clamp(0, NOISE_STEPS).to(torch.uint8)
-    h, w = raw.shape[-2:]
-    rows = torch.arange(h, device=raw.device)[:, None]
-    cols = torch.arange(w, device=raw.device)[None, :]
-    checkerboard = ((rows + cols) % 2).to(torch.uint8) * NOISE_STEPS
-    steps = torch.where(valid, steps, checkerboard.expand_as(steps))
-    median = square_median_u8(steps, window).float()
-    count = square_sum(valid.float(), smoothing).clamp_min(1.0)   # the mean's own pixels
-    pixel_sd = median * (NOISE_STEP_M * 1.4826 / math.sqrt(1.0 - 1.0 / n))
-    return pixel_sd / count.sqrt()
-
-
-def square_median_u8(x: torch.Tensor, window: int) -> torch.Tensor:
-    """(N, h, w) uint8 -> the median over the centred ``window`` x ``window`` square, the
-    border replicated. On the CPU OpenCV's median filter (0.5 ms at 160 x 120 for a 15 x 15
-    window); elsewhere ``square_median_torch``, which gives the same values."""
-    if x.device.type != "cpu" or len(x) == 0:
-        return square_median_torch(x, window)
-    return _per_plane(x, lambda plane: cv2.medianBlur(plane, window))
-
-
-def square_median_torch(x: torch.Tensor, window: int) -> torch.Tensor:
-    """``square_median_u8`` in torch: the median over the unfolded squares, one image at a
-    time (the squares of one 160 x 120 image at window 15 take 17 MB)."""
-    pad = window // 2
-
-    def one(image: torch.Tensor) -> torch.Tensor:
-        padded = F.pad(image[None, None].float(), (pad, pad, pad, pad), mode="replicate")
-        squares = F.unfold(padded, window)  # (1, window², h * w)
-        return squares.median(dim=1).values.reshape(image.shape).to(torch.uint8)
-
-    if len(x) == 0:
-        return x.clone()
-    return torch.stack([one(image) for image in x])
-
-
-def valid_mean(x: torch.Tensor, valid: torch.Tensor, window: int) -> torch.Tensor:
-    """(N, h, w) values and validity -> each valid pixel's mean over the valid pixels of the
-    centred ``window`` x ``window`` square (the frame's outside counts as invalid); invalid
-    pixels keep their value."""
-    weight = valid.float()
-    total = square_sum(torch.where(valid, x, torch.zeros_like(x)), window)
-    count = square_sum(weight, window)
-    return torch.where(valid, total / count.clamp_min(1.0), x)
-
-
-def square_sum(x: torch.Tensor, window: int) -> torch.Tensor:
-    """(N, h, w) float32 -> the sum over the centred ``window`` x ``window`` square, zeros
-    beyond the frame. On the CPU OpenCV's box filter (cheaper than torch's average pool at
-    160 x 120), elsewhere an average pool times the window's area."""
-    if x.device.type != "cpu" or len(x) == 0:
-        pad = window // 2
-        pooled = F.avg_pool2d(x[:, None], window, stride=1, padding=pad,
-                              count_include_pad=True)
-        return pooled[:, 0] * float(window * window)
-    return _per_plane(x, lambda plane: cv2.boxFilter(
-        plane, -1, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT))
-
-
-def square_max(x: torch.Tensor, window: int, beyond: float = -float("inf")) -> torch.Tensor:
-    """(N, h, w) float32 -> the max over the centred ``window`` x ``window`` square around
-    each pixel, pixels beyond the frame reading ``beyond``. On the CPU OpenCV's dilation does
-    it (0.03 ms at 160 x 120, 20x faster than torch's stride-1 max-pool); elsewhere
-    ``square_max_torch``, which gives the same values."""
-    if x.device.type != "cpu" or len(x) == 0:
-        return square_max_torch(x, window, beyond)
-    kernel = np.ones((window, window), np.uint8)
-    return _per_plane(x, lambda plane: cv2.dilate(
-        plane, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=beyond))
-
-
-def _per_plane(x: torch.Tensor, opencv_op) -> torch.Tensor:
-    """An OpenCV filter applied to each (h, w) plane of a CPU (N, h, w) tensor."""
-    planes = x.detach().contiguous().numpy()
-    return torch.from_numpy(np.stack([opencv_op(plane) for plane in planes])
-                            .reshape(planes.shape))
-
-
-def square_max_torch(x: torch.Tensor, window: int,
-                     beyond: float = -float("inf")) -> torch.Tensor:
-    """``square_max`` as two separable max-pools (a row pass, then a column pass) over the
-    image padded with ``beyond``."""
-    pad = window // 2
-    padded = F.pad(x[:, None], (pad, pad, pad, pad), value=beyond)
-    rows = F.max_pool2d(padded, (1, window), stride=1)
-    return F.max_pool2d(rows, (window, 1), stride=1)[:, 0]
 
 
 def _conv_block(c_in: int, c_out: int, n_convs: int = 2) -> nn.Sequential:

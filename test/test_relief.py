@@ -1,4 +1,4 @@
-"""The local-relief input channel (model.local_relief): a small object reads its own height
+"""The local-relief input channel (relief.local_relief): a small object reads its own height
 above whatever surface it lies on."""
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ from task_outcome_ros.model import (
     DEFAULT_NORMALISATION,
     check_normalisation,
     input_channels,
+    preprocess,
+    preprocess_batch,
+)
+from task_outcome_ros.relief import (
     local_noise_sd,
     local_relief,
     majority_valid,
-    preprocess,
-    preprocess_batch,
-    square_max,
-    square_max_torch,
     square_median_torch,
     square_median_u8,
     square_sum,
@@ -65,14 +65,38 @@ def test_a_window_without_valid_pixels_and_an_empty_image_read_zero() -> None:
     assert torch.all(relief[0, 10:, 10:] == 0)
 
 
-def test_opencv_and_torch_square_max_agree_including_at_the_border() -> None:
-    x = torch.randn(3, 25, 31)
-    x[0, :4] = -float("inf")
-    x[1, :, -3:] = float("inf")
-    for window in (3, 9, 15):
-        for beyond in (-float("inf"), float("inf")):
-            assert torch.equal(square_max(x, window, beyond),
-                               square_max_torch(x, window, beyond))
+def _relief_by_max_pool(height: torch.Tensor, valid: torch.Tensor, window: int,
+                        smoothing: int) -> torch.Tensor:
+    """The relief written another way, for the test below: torch's max-pool over the heights
+    padded with +-inf beyond the frame, on the torch twin of the valid mean."""
+    pad = window // 2
+
+    def square_max(x: torch.Tensor, beyond: float) -> torch.Tensor:
+        padded = torch.nn.functional.pad(x[:, None], (pad, pad, pad, pad), value=beyond)
+        return torch.nn.functional.max_pool2d(padded, window, stride=1)[:, 0]
+
+    if smoothing > 1:
+        height = valid_mean(height, valid, smoothing)
+    eroded = -square_max(torch.where(valid, -height, -float("inf")), float("inf"))
+    eroded = torch.where(torch.isinf(eroded), -float("inf"), eroded)
+    relief = height - square_max(eroded, -float("inf"))
+    return torch.where(valid & torch.isfinite(relief), relief.clamp_min(0.0), 0.0)
+
+
+@pytest.mark.parametrize("window, smoothing", [(3, 1), (9, 3), (15, 3), (15, 5)])
+def test_the_relief_equals_the_same_opening_written_with_torch_pooling(window, smoothing):
+    """The numpy / OpenCV relief against max-pools padded with +-inf: the same values to the
+    last bit, at the frame's border and around invalid pixels too."""
+    gen = torch.Generator().manual_seed(window * 10 + smoothing)
+    height = torch.randn(3, 25, 31, generator=gen) * 0.05
+    valid = torch.rand(3, 25, 31, generator=gen) > 0.2
+    valid[1, :, :4] = False    # an invalid band at the border
+    valid[2] = False           # nothing valid: no relief anywhere
+    expected = _relief_by_max_pool(height, valid, window, smoothing)
+    relief = local_relief(height, valid, window, smoothing)
+    assert relief.dtype == torch.float32 and relief.shape == height.shape
+    assert torch.equal(relief, expected)
+    assert relief[0].gt(0).any() and torch.all(relief[2] == 0)
 
 
 def test_an_object_cut_by_the_frame_reads_its_height_and_a_surface_at_the_edge_reads_zero():

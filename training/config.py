@@ -835,21 +835,21 @@ class TrainConfig:
     # size, so small objects (slivers at the frame's edge, far objects on a room floor) count
     # like large ones, as they do in the image metric; 0 = off (plain class weights).
     object_balance_pixels: int = 0
-    # A fourth input channel, the heights' local relief (model.local_relief) over a square of
+    # A fourth input channel, the heights' local relief (relief.local_relief) over a square of
     # this many working pixels: a small object reads its own height above whatever surface it
     # lies on (a room floor 0.75 m below the table included); 0 = off (three channels).
     relief_window_px: int = 0
     # The relief of the heights' mean over a square of this many working pixels
-    # (model.valid_mean), so that sensor noise does not read as relief on a flat surface;
+    # (relief.valid_mean), so that sensor noise does not read as relief on a flat surface;
     # needs relief_window_px; 0 = off (the relief of the heights themselves).
     relief_smoothing_px: int = 0
     # The relief's surface (its opening) found on the heights' mean over a square of this
-    # many working pixels (model.local_relief), so that the erosion's low tail, which grows
+    # many working pixels (relief.local_relief), so that the erosion's low tail, which grows
     # with the noise, stays narrow; needs relief_window_px; 0 = off (the surface from the
     # same heights as each pixel's own).
     relief_base_px: int = 0
     # The relief lowered by this many deviations of the smoothed heights' noise, measured
-    # around each pixel by a median (model.local_noise_sd), so that a noisy far floor reads
+    # around each pixel by a median (relief.local_noise_sd), so that a noisy far floor reads
     # about as flat as a quiet one; needs relief_smoothing_px; 0 = off.
     relief_noise_sds: float = 0.0
     # The relief of what lies below the table top measured from the room floor beneath it
