@@ -15,7 +15,8 @@ workers wait on stdin and are asked for a block of frames one at a time, in a ro
 so only one works at any moment and a change in machine load hits them all alike.
 
 The pairs: ``--model`` and ``--reference`` (default: the default task's model), each on this
-checkout's code and on the revision's. Writes ``revision.<model>`` in bench/results.json: each
+checkout's code and on the revision's; a model the revision did not ship is left out there
+(``absent`` says why). Writes ``revision.<model>`` in bench/results.json: each
 pair's timings, and ``ratios``: each model here over the same model on the revision (what the
 change of code did) and ``--model`` here over ``--reference`` on the revision (whether the
 model costs no more than the reference did), each as the ratio of p50s and as the median
@@ -74,19 +75,26 @@ def save_frames(path: Path, depths: list[np.ndarray], cameras: list) -> None:
     np.savez(path, depth=np.stack(depths), cameras=np.asarray(rows, np.float64))
 
 
-class Worker:
-    """A bench/_segment_worker.py process running ``model`` on the code under ``code``."""
+class WorkerFailed(RuntimeError):
+    """A worker ended before it was ready; the text ends with its stderr's last line."""
 
-    def __init__(self, code: Path, model: str, frames: Path, warmup: int) -> None:
+
+class Worker:
+    """A bench/_segment_worker.py process running ``model`` on the code under ``code``; its
+    stderr goes to ``log``."""
+
+    def __init__(self, code: Path, model: str, frames: Path, warmup: int, log: Path) -> None:
         env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": "1"}
-        self.proc = subprocess.Popen(
-            [sys.executable, str(WORKER), "--model", model, "--frames", str(frames),
-             "--warmup", str(warmup)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            text=True, env=env, cwd=code)
+        with log.open("w") as err:
+            self.proc = subprocess.Popen(
+                [sys.executable, str(WORKER), "--model", model, "--frames", str(frames),
+                 "--warmup", str(warmup)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                stderr=err, text=True, env=env, cwd=code)
         hello = self.proc.stdout.readline()
         if not hello:
-            raise RuntimeError(f"the worker for {model} on {code} ended before it was ready "
-                               f"(exit {self.proc.wait()}); see its stderr above")
+            lines = log.read_text().strip().splitlines() or ["(no stderr)"]
+            raise WorkerFailed(f"the worker for {model} on {code} ended before it was ready "
+                               f"(exit {self.proc.wait()}): {lines[-1]}")
         self.info = json.loads(hello)
         if not Path(self.info["code"]).resolve().is_relative_to(code.resolve()):
             raise RuntimeError(f"the worker for {code} imported task_outcome_ros from "
@@ -141,13 +149,19 @@ def main() -> None:
         loaded = {m: synthetic for m in models}
     with tempfile.TemporaryDirectory(prefix="bench_revision_") as tmp:
         codes = {HERE: REPO, commit[:12]: unpack(commit, Path(tmp))}
-        workers = {}
+        workers, absent = {}, {}
         try:
             for m in models:
                 frames_file = Path(tmp) / f"frames_{m}.npz"
                 save_frames(frames_file, loaded[m][0], loaded[m][2])
                 for code_name, code in codes.items():
-                    workers[code_name, m] = Worker(code, m, frames_file, args.warmup)
+                    log = Path(tmp) / f"worker_{code_name}_{m}.log"
+                    try:
+                        workers[code_name, m] = Worker(code, m, frames_file, args.warmup, log)
+                    except WorkerFailed as exc:
+                        if code_name == HERE:
+                            raise
+                        absent[f"{code_name}/{m}"] = str(exc).replace(tmp, "<tmp>")
             pairs = list(workers)
             times = {p: [] for p in pairs}
             blocks = {p: [] for p in pairs}
@@ -164,13 +178,15 @@ def main() -> None:
                 worker.close()
 
     old = commit[:12]
-    result_ratios = {f"{m}_here_over_{m}_at_revision": ratios(times, blocks, (HERE, m), (old, m))
-                     for m in models}
+    wanted = {f"{m}_here_over_{m}_at_revision": ((HERE, m), (old, m)) for m in models}
     if args.model != args.reference:
-        result_ratios[f"{args.model}_here_over_{args.reference}_at_revision"] = ratios(
-            times, blocks, (HERE, args.model), (old, args.reference))
-        result_ratios[f"{args.model}_here_over_{args.reference}_here"] = ratios(
-            times, blocks, (HERE, args.model), (HERE, args.reference))
+        wanted[f"{args.model}_here_over_{args.reference}_at_revision"] = (
+            (HERE, args.model), (old, args.reference))
+        wanted[f"{args.model}_here_over_{args.reference}_here"] = (
+            (HERE, args.model), (HERE, args.reference))
+    # A model the revision did not ship has no pair there, and no ratio to it.
+    result_ratios = {name: ratios(times, blocks, a, b) for name, (a, b) in wanted.items()
+                     if a in times and b in times}
     section = "revision" if args.model == "default" else f"revision.{args.model}"
     record(section, {
         "against": commit, "models": models, "quick": args.quick, "wall_s": round(wall, 1),
@@ -180,6 +196,7 @@ def main() -> None:
                                   "model_sha256": model_sha[code, m]}
                   for code, m in pairs},
         "ratios": result_ratios,
+        "absent": absent,
         "note": ("segment_ms = one OutcomeSegmenter.segment() call on a 640x480 frame with its "
                  "camera_info, ONNX Runtime on one thread, each (code, model) pair in its own "
                  "process; pairs interleaved in rotating blocks; here = this checkout's code"),

@@ -33,9 +33,13 @@ def sanitize_depth(depth: np.ndarray, *, copy: bool = True) -> np.ndarray:
         raise DepthDecodeError(f"depth must be a 2-D array (H x W), got shape {arr.shape}")
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
         raise DepthDecodeError(f"depth must be a numeric array, got dtype {arr.dtype}")
-    out = arr.astype(np.float32, copy=copy)
-    with np.errstate(invalid="ignore"):
-        out[~(np.isfinite(out) & (out > 0))] = np.nan
+    out = arr.astype(np.float32, copy=False)  # converted first: a value float32 cannot hold
+    with np.errstate(invalid="ignore"):       # (1e-50, 1e300) becomes 0 or inf, then invalid
+        usable = out > 0
+        usable &= out < np.inf                # NaN fails both comparisons
+    if copy:   # one pass that writes the copy, cheaper than a copy and a masked write
+        return np.where(usable, out, np.float32(np.nan))
+    np.copyto(out, np.float32(np.nan), where=~usable)
     return out
 
 

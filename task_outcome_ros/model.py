@@ -240,7 +240,7 @@ def resize_depth(depth_m: np.ndarray, input_size: tuple[int, int],
     # fmax skips NaN: 0 where invalid, the depth (> 0) elsewhere (sanitised input has no inf);
     # one pass, unlike np.where.
     filled = np.fmax(depth_m, np.float32(0)).astype(np.float32, copy=False)
-    mask = np.isfinite(depth_m).astype(np.float32)
+    mask = np.sign(filled)   # 1 where a depth is valid (> 0), 0 where fmax wrote 0: one pass
     if depth_m.shape != (h, w):
         # INTER_AREA averages when shrinking; on enlargement it is bilinear, still NaN-aware.
         filled = cv2.resize(filled, (w, h), interpolation=cv2.INTER_AREA)

@@ -17,6 +17,7 @@ from task_outcome_ros.checkpoint import CheckpointError
 from task_outcome_ros.depth import sanitize_depth
 from task_outcome_ros.inference import (
     OutcomeSegmenter,
+    class_ids,
     count_objects,
     default_model_path,
     predict_labels,
@@ -457,3 +458,13 @@ def test_a_sanitised_frame_is_segmented_as_it_is(segmenter: OutcomeSegmenter) ->
     # where almost every pixel has some valid depth under it.
     assert got.stats.valid_fraction == pytest.approx(np.isfinite(clean).mean(), abs=1e-9)
     assert got.stats.valid_fraction < 0.97
+
+
+@pytest.mark.parametrize("classes", [1, 2, 5, 7])
+def test_class_ids_answer_as_argmax_over_the_channels_ties_to_the_first(classes):
+    rng = np.random.default_rng(classes)
+    logits = rng.normal(size=(classes, 30, 40)).astype(np.float32)
+    logits[:, :10] = rng.integers(0, 3, size=(classes, 10, 40))   # many exact ties
+    ids = class_ids(logits)
+    assert ids.dtype == np.uint8 and ids.shape == (30, 40)
+    assert np.array_equal(ids, np.argmax(logits, axis=0))
