@@ -175,7 +175,7 @@ def count_objects(labels: np.ndarray, outcome_id: int, min_pixels: int,
     labels = np.asarray(labels)
     if depth_m is not None and depth_m.shape != labels.shape[:2]:
         raise ValueError(f"depth shape {depth_m.shape} != labels shape {labels.shape}")
-    mask = (labels == outcome_id).astype(np.uint8)
+    mask = (labels == outcome_id).view(np.uint8)   # bool is one byte of 0 / 1: no copy
     # Label components only inside the class's bounding box: outcome objects cover a small
     # part of the frame, and labelling the whole 640 x 480 frame was most of postprocess.
     x0, y0, bw, bh = cv2.boundingRect(mask)
