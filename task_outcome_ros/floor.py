@@ -180,16 +180,17 @@ def _plane_scores(signed: torch.Tensor, inlier_m: float, version: int) -> torch.
     (N, H) integer scores. Version 1: the points within the band. Later versions: +1 per
     point within the band, -1 per point beneath it (nothing lies beneath the floor), which is
     [s < band] - 2 [s < -band]. Counts are exact, so every way of counting picks the same
-    plane; on the CPU numpy's ``count_nonzero`` counts a 128 x 1,200 block in about a tenth of
-    the time of torch's compare, convert and sum."""
+    plane; on the CPU numpy counts a 128 x 1,200 block in about a fifth of the time of torch's
+    compare, convert and sum."""
     if version == 1:
         inside = signed.abs() < inlier_m
         return inside.sum(-1)
     if signed.device.type == "cpu":
         s = signed.detach().numpy()
-        below = np.count_nonzero(s < inlier_m, axis=-1)
-        beneath = np.count_nonzero(s < -inlier_m, axis=-1)
-        return torch.from_numpy(below - 2 * beneath)
+        # Each point's vote as int8 (-1, 0, +1) from the two comparisons' bytes, summed in
+        # int32: half the time of count_nonzero along an axis.
+        votes = (s < inlier_m).view(np.int8) - 2 * (s < -inlier_m).view(np.int8)
+        return torch.from_numpy(votes.sum(-1, dtype=np.int32))
     return (signed < inlier_m).sum(-1) - 2 * (signed < -inlier_m).sum(-1)
 
 

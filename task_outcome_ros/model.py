@@ -237,10 +237,12 @@ def resize_depth(depth_m: np.ndarray, input_size: tuple[int, int],
     valid input under them) get depth 0 and fraction 0.
     """
     w, h = input_size
-    # fmax skips NaN: 0 where invalid, the depth (> 0) elsewhere (sanitised input has no inf);
-    # one pass, unlike np.where.
-    filled = np.fmax(depth_m, np.float32(0)).astype(np.float32, copy=False)
-    mask = np.sign(filled)   # 1 where a depth is valid (> 0), 0 where fmax wrote 0: one pass
+    # 0 where invalid, the depth (> 0) elsewhere (sanitised input has no inf), and the valid
+    # mask as float32: OpenCV's NaN patch and threshold, one SIMD pass each (numpy's fmax and
+    # isfinite-then-convert took about twice as long).
+    filled = np.array(depth_m, np.float32)
+    cv2.patchNaNs(filled, 0)
+    mask = cv2.threshold(filled, 0, 1.0, cv2.THRESH_BINARY)[1]
     if depth_m.shape != (h, w):
         # INTER_AREA averages when shrinking; on enlargement it is bilinear, still NaN-aware.
         filled = cv2.resize(filled, (w, h), interpolation=cv2.INTER_AREA)
