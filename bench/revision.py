@@ -14,6 +14,12 @@ worker times ONNX Runtime on one thread, as the node runs on one core, on the sa
 workers wait on stdin and are asked for a block of frames one at a time, in a rotating order,
 so only one works at any moment and a change in machine load hits them all alike.
 
+``--static-camera COPIES``: each frame comes COPIES times in a row with fresh 2 mm noise, and
+each worker keeps the support plane while it fits where its code has that option
+(``reuse_floor_fit``, the node's default), as each revision's node runs on a camera that
+does not move; older code refits every frame, as its node did. Written to
+``revision_static[.<model>]``.
+
 The pairs: ``--model`` and ``--reference`` (default: the default task's model), each on this
 checkout's code and on the revision's; a model the revision did not ship is left out there
 (``absent`` says why). Writes ``revision.<model>`` in bench/results.json: each
@@ -39,7 +45,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import percentiles, record, rotated, sha256  # noqa: E402
-from inference import load_frames  # noqa: E402
+from inference import load_frames, repeat_as_static_camera  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 WORKER = Path(__file__).resolve().parent / "_segment_worker.py"
@@ -83,13 +89,15 @@ class Worker:
     """A bench/_segment_worker.py process running ``model`` on the code under ``code``; its
     stderr goes to ``log``."""
 
-    def __init__(self, code: Path, model: str, frames: Path, warmup: int, log: Path) -> None:
+    def __init__(self, code: Path, model: str, frames: Path, warmup: int, log: Path,
+                 reuse_floor_fit: bool = False) -> None:
         env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": "1"}
+        command = [sys.executable, str(WORKER), "--model", model, "--frames", str(frames),
+                   "--warmup", str(warmup)] + (["--reuse-floor-fit"] if reuse_floor_fit else [])
         with log.open("w") as err:
-            self.proc = subprocess.Popen(
-                [sys.executable, str(WORKER), "--model", model, "--frames", str(frames),
-                 "--warmup", str(warmup)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                stderr=err, text=True, env=env, cwd=code)
+            self.proc = subprocess.Popen(command, stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, stderr=err, text=True,
+                                         env=env, cwd=code)
         hello = self.proc.stdout.readline()
         if not hello:
             lines = log.read_text().strip().splitlines() or ["(no stderr)"]
@@ -101,9 +109,12 @@ class Worker:
                                f"{self.info['code']}: PYTHONPATH did not take")
 
     def block(self, n: int) -> list[float]:
+        """The times (ms) of the next ``n`` frames; ``planes`` says how the plane was kept."""
         self.proc.stdin.write(f"{n}\n")
         self.proc.stdin.flush()
-        return json.loads(self.proc.stdout.readline())
+        answer = json.loads(self.proc.stdout.readline())
+        self.planes = answer["planes"]
+        return answer["ms"]
 
     def close(self) -> None:
         if self.proc.poll() is None:
@@ -130,7 +141,13 @@ def main() -> None:
     parser.add_argument("--images", type=int, default=50, help="distinct frames per model")
     parser.add_argument("--warmup", type=int, default=20, help="untimed frames per pair")
     parser.add_argument("--quick", action="store_true", help="smoke run: 40 frames, 10 images")
+    parser.add_argument("--static-camera", type=int, default=0, metavar="COPIES",
+                        help="each frame COPIES times in a row with fresh 2 mm noise, and the "
+                             "support plane kept while it fits where the code can, as the "
+                             "node runs (default 0: every frame refitted)")
     args = parser.parse_args()
+    if args.static_camera < 0:
+        parser.error(f"--static-camera must be >= 0, got {args.static_camera}")
     if args.quick:
         args.frames, args.images, args.warmup = min(args.frames, 40), min(args.images, 10), 3
     try:
@@ -147,6 +164,11 @@ def main() -> None:
     if any(loaded[m][1][0] is None for m in models):   # synthetic for one: the same for all
         synthetic = next(loaded[m] for m in models if loaded[m][1][0] is None)
         loaded = {m: synthetic for m in models}
+    if args.static_camera:
+        tables = [{m: list(loaded[m][i]) for m in models} for i in range(3)]
+        tables.append({m: loaded[m][3] for m in models})   # the descriptions
+        repeat_as_static_camera(args.static_camera, *tables)
+        loaded = {m: tuple(table[m] for table in tables) for m in models}
     with tempfile.TemporaryDirectory(prefix="bench_revision_") as tmp:
         codes = {HERE: REPO, commit[:12]: unpack(commit, Path(tmp))}
         workers, absent = {}, {}
@@ -157,7 +179,8 @@ def main() -> None:
                 for code_name, code in codes.items():
                     log = Path(tmp) / f"worker_{code_name}_{m}.log"
                     try:
-                        workers[code_name, m] = Worker(code, m, frames_file, args.warmup, log)
+                        workers[code_name, m] = Worker(code, m, frames_file, args.warmup, log,
+                                                       args.static_camera > 0)
                     except WorkerFailed as exc:
                         if code_name == HERE:
                             raise
@@ -187,13 +210,17 @@ def main() -> None:
     # A model the revision did not ship has no pair there, and no ratio to it.
     result_ratios = {name: ratios(times, blocks, a, b) for name, (a, b) in wanted.items()
                      if a in times and b in times}
-    section = "revision" if args.model == "default" else f"revision.{args.model}"
+    base = "revision_static" if args.static_camera else "revision"
+    section = base if args.model == "default" else f"{base}.{args.model}"
     record(section, {
         "against": commit, "models": models, "quick": args.quick, "wall_s": round(wall, 1),
         "frames": {m: loaded[m][3] for m in models}, "block": args.block,
         "warmup_per_pair": args.warmup,
+        "static_camera_copies": args.static_camera,
         "pairs": {f"{code}/{m}": {"segment_ms": percentiles(times[code, m]),
-                                  "model_sha256": model_sha[code, m]}
+                                  "model_sha256": model_sha[code, m],
+                                  "reuse_floor_fit": workers[code, m].info["reuse_floor_fit"],
+                                  "planes": workers[code, m].planes}
                   for code, m in pairs},
         "ratios": result_ratios,
         "absent": absent,

@@ -64,6 +64,8 @@ def absorb_fragments(labels: np.ndarray, max_pixels: int,
     is_outcome = outcome_lut[labels]
     for outcome in outcome_ids:
         mask = (labels == outcome).view(np.uint8)   # bool is one byte of 0 / 1: no copy
+        if not mask.any():   # most frames show one or two outcomes: no labelling for the rest
+            continue
         n, cc, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
         for k in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < max_pixels) + 1:
             # Work inside the component's bounding box grown by the one-pixel ring.

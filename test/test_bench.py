@@ -92,13 +92,24 @@ def test_quick_bench_runs_and_records_real_timings(tmp_path, script, args, secti
             assert setup["planes_fitted"] >= 1 and setup["planes_kept"] > setup["planes_fitted"]
 
 
-def test_revision_bench_times_each_model_on_both_codes_in_its_own_process(tmp_path):
+@pytest.mark.parametrize("static", [0, 5])
+def test_revision_bench_times_each_model_on_both_codes_in_its_own_process(tmp_path, static):
     """bench/revision.py against HEAD: four (code, model) workers, each importing its own copy
-    of the package, as many frames each, and the ratios made from their timings."""
+    of the package, as many frames each, and the ratios made from their timings; with a
+    static camera every worker keeps its plane (HEAD has the option) between refits."""
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True,
                           text=True, check=True).stdout.strip()
+    section = "revision_static.tote" if static else "revision.tote"
     report = _run("revision.py", tmp_path / "results.json", "--against", "HEAD", "--quick",
-                  "--model", "tote")["revision.tote"]
+                  "--model", "tote", "--static-camera", str(static))[section]
+    assert report["static_camera_copies"] == static
+    for pair in report["pairs"].values():
+        assert pair["reuse_floor_fit"] == bool(static)
+        if static:   # 40 frames: 8 images, 5 copies each: fitted once per image at most
+            assert pair["planes"]["kept"] + pair["planes"]["fitted"] == 40
+            assert pair["planes"]["kept"] >= 4 * pair["planes"]["fitted"] > 0
+        else:
+            assert pair["planes"] is None
     assert report["against"] == head and report["models"] == ["tote", "default"]
     assert set(report["pairs"]) == {f"{code}/{m}" for code in ("here", head[:12])
                                     for m in ("tote", "default")}
