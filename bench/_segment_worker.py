@@ -33,6 +33,10 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--reuse-floor-fit", action="store_true",
                         help="keep the support plane while it fits, where the code can")
+    parser.add_argument("--copies", type=int, default=1,
+                        help="each frame this many times in a row, each time with fresh 2 mm "
+                             "noise drawn from the frame's position in the sequence (so "
+                             "every worker sees the same frames), when more than 1")
     args = parser.parse_args()
 
     import cv2
@@ -64,13 +68,24 @@ def main() -> None:
         tracker.reused = tracker.refits = 0   # count the timed frames only
     print(json.dumps({"code": task_outcome_ros.__file__, "model": str(seg.model_path),
                       "backend": seg.backend, "reuse_floor_fit": reuse}), flush=True)
+    copies = max(args.copies, 1)
+
+    def frame(k: int) -> tuple[np.ndarray, object]:
+        """The k-th frame of the sequence (made before its timer starts)."""
+        i = (k // copies) % len(depths)
+        depth = depths[i]
+        if copies > 1:   # a static camera: the same view, fresh noise on its valid pixels
+            noise = np.random.default_rng(k).normal(0.0, 0.002, depth.shape)
+            depth = np.where(np.isfinite(depth), depth + noise, depth).astype(np.float32)
+        return depth, cameras[i]
+
     k = 0
     for line in sys.stdin:
         if line.strip() == "quit":
             break
         times = []
         for _ in range(int(line)):
-            depth, camera = depths[k % len(depths)], cameras[k % len(depths)]
+            depth, camera = frame(k)
             k += 1
             t0 = time.perf_counter()
             seg.segment(depth, camera)

@@ -149,9 +149,10 @@ def predict_labels(model: nn.Module, batch: torch.Tensor) -> torch.Tensor:
 
 
 def class_ids(logits: np.ndarray) -> np.ndarray:
-    """(C, h, w) logits -> (h, w) uint8 id of the largest, the first on a tie (as
+    """(C, h, w) finite logits -> (h, w) uint8 id of the largest, the first on a tie (as
     ``np.argmax(logits, axis=0)``, which strides across the channels for every pixel and
-    costs about twice as much as this walk over the channel planes)."""
+    costs about twice as much as this walk over the channel planes; unlike it, a NaN logit
+    never wins)."""
     best = logits[0].copy()
     ids = np.zeros(best.shape, np.uint8)
     for class_id in range(1, len(logits)):

@@ -70,16 +70,15 @@ def local_relief(height: torch.Tensor, valid: torch.Tensor, window: int,
         smoothed = torch.from_numpy(np.stack([m for _, m in planes])).to(raw.device)
         sd = local_noise_sd(raw, smoothed, valid, window, smoothing)
         relief = relief - np.float32(noise_sds) * sd.cpu().numpy()
-    with np.errstate(invalid="ignore"):   # inf - inf where no window held a valid pixel
-        keep = valids & np.isfinite(relief)
-        out = np.where(keep, np.maximum(relief, np.float32(0)), np.float32(0))
+    keep = valids & np.isfinite(relief)   # +inf where no window around held a valid pixel
+    out = np.where(keep, np.maximum(relief, np.float32(0)), np.float32(0))
     return torch.from_numpy(out.astype(np.float32, copy=False)).to(raw.device)
 
 
 def _plane_relief(height: np.ndarray, valid: np.ndarray, window: int, smoothing: int,
                   base: int | None) -> tuple[np.ndarray, np.ndarray]:
     """``local_relief`` of one (h, w) plane before its last step: (height above the opening,
-    may be -inf or NaN where no support is seen; the ``smoothing`` mean of the heights)."""
+    +inf where no support is seen; the ``smoothing`` mean of the heights)."""
     mean = _plane_valid_mean(height, valid, smoothing)
     surface = mean if base is None else _plane_valid_mean(height, valid, base)
     kernel = np.ones((window, window), np.uint8)
@@ -167,11 +166,13 @@ def square_median_torch(x: torch.Tensor, window: int) -> torch.Tensor:
 def valid_mean(x: torch.Tensor, valid: torch.Tensor, window: int) -> torch.Tensor:
     """(N, h, w) values and validity -> each valid pixel's mean over the valid pixels of the
     centred ``window`` x ``window`` square (the frame's outside counts as invalid); invalid
-    pixels keep their value."""
-    weight = valid.float()
-    total = square_sum(torch.where(valid, x, torch.zeros_like(x)), window)
-    count = square_sum(weight, window)
-    return torch.where(valid, total / count.clamp_min(1.0), x)
+    pixels keep their value. The relief's own mean (``_plane_valid_mean``), for torch
+    callers."""
+    if len(x) == 0:
+        return x.clone()
+    planes = [_plane_valid_mean(p, v, window) for p, v in
+              zip(x.detach().float().cpu().numpy(), valid.detach().cpu().numpy())]
+    return torch.from_numpy(np.stack(planes)).to(x.device)
 
 
 def square_sum(x: torch.Tensor, window: int) -> torch.Tensor:

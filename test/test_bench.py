@@ -102,6 +102,7 @@ def test_revision_bench_times_each_model_on_both_codes_in_its_own_process(tmp_pa
     section = "revision_static.tote" if static else "revision.tote"
     report = _run("revision.py", tmp_path / "results.json", "--against", "HEAD", "--quick",
                   "--model", "tote", "--static-camera", str(static))[section]
+    assert report["absent"] == {}
     assert report["static_camera_copies"] == static
     for pair in report["pairs"].values():
         assert pair["reuse_floor_fit"] == bool(static)
@@ -127,6 +128,23 @@ def test_revision_bench_times_each_model_on_both_codes_in_its_own_process(tmp_pa
                                      "tote_here_over_default_at_revision",
                                      "tote_here_over_default_here"}
     assert all(0 < r["paired"] < 100 for r in report["ratios"].values())
+
+
+def test_revision_bench_against_code_that_shipped_no_tote_and_refit_every_frame(tmp_path):
+    """467bcef (package 0.2.0, 2026-12-01, the inference budget's reference) shipped the default
+    model only and had no reuse_floor_fit: its tote pair is left out, saying why, and its
+    default pair refits every frame while this checkout's keep their plane."""
+    report = _run("revision.py", tmp_path / "results.json", "--against", "467bcef", "--quick",
+                  "--model", "tote", "--static-camera", "5")["revision_static.tote"]
+    old = report["against"][:12]
+    assert set(report["pairs"]) == {"here/tote", "here/default", f"{old}/default"}
+    assert "no shipped model named 'tote'" in report["absent"][f"{old}/tote"]
+    assert report["pairs"][f"{old}/default"]["reuse_floor_fit"] is False
+    assert report["pairs"][f"{old}/default"]["planes"] is None
+    assert report["pairs"]["here/tote"]["planes"]["kept"] > 0
+    assert set(report["ratios"]) == {"default_here_over_default_at_revision",
+                                     "tote_here_over_default_at_revision",
+                                     "tote_here_over_default_here"}
 
 
 def test_revision_bench_names_a_revision_git_does_not_know(tmp_path):

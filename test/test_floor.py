@@ -14,7 +14,10 @@ from task_outcome_ros.floor import (
     FOCAL_OVER_WIDTH,
     LEGACY_FLOOR_FIT,
     FloorTracker,
+    _plane_scores,
+    _refine,
     backproject,
+    fit_floor,
     height_above_floor,
 )
 from task_outcome_ros.model import (
@@ -73,6 +76,73 @@ def test_heights_are_deterministic_and_batch_independent() -> None:
     alone = height_above_floor(b[None], valid[1:])
     torch.testing.assert_close(together[1:], alone)
     torch.testing.assert_close(height_above_floor(both, valid), together)
+
+
+@pytest.mark.parametrize("version", [1, 2, 3])
+def test_hypothesis_scores_are_the_exact_vote_counts(version) -> None:
+    """numpy's counts on the CPU against the votes written out in torch: +1 within the band,
+    -1 beneath it (version 1: within only), NaN (a point not scored) never counted; points
+    right on the band's edges and integer ties included."""
+    band = 0.008
+    gen = torch.Generator().manual_seed(version)
+    signed = torch.randn(3, 128, 1200, generator=gen) * 0.02
+    signed[:, :, :40] = torch.tensor([-band, band, 0.0, -2 * band])[torch.randint(
+        0, 4, (3, 128, 40), generator=gen)]
+    signed[:, :, -100:] = float("nan")
+    if version == 1:
+        expected = (signed.abs() < band).sum(-1)
+    else:
+        expected = torch.where(signed < -band, -1, (signed < band).long()).sum(-1)
+    scores = _plane_scores(signed, band, version)
+    assert torch.equal(scores.long(), expected)
+    assert scores.shape == (3, 128)
+
+
+def test_the_refit_is_the_least_squares_plane_of_the_inliers() -> None:
+    """A plane with 2 mm noise and outliers far off it: the refit's normal and offset are the
+    inliers' principal axis in float64, kept on the incoming normal's side; an image with
+    under three inliers keeps its plane."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-1, 1, (2000, 2))
+    normal_true = np.array([0.1, -0.8, -0.5]) / np.linalg.norm([0.1, -0.8, -0.5])
+    # points on n . p = -1.5 (a floor 1.5 m from the camera), noise along the normal
+    basis = np.linalg.svd(normal_true[None])[2][1:]
+    on_plane = -1.5 * normal_true + xy @ basis
+    points = on_plane + rng.normal(0, 0.002, (2000, 1)) * normal_true
+    points[:100] += 0.5 * normal_true                     # outliers 0.5 m off the plane
+    flat = torch.from_numpy(points.astype(np.float32))[None]
+    valid = torch.ones(1, 2000, dtype=torch.bool)
+    start = torch.from_numpy((normal_true + [0.004, 0, 0]).astype(np.float32))[None]
+    start = start / start.norm()
+    normal, offset = _refine(flat, valid, start, torch.tensor([-1.5]), 0.008)
+    # the inliers of the incoming plane, chosen as the refit chooses them (float32)
+    near = np.abs(flat[0].numpy() @ start[0].numpy() - np.float32(-1.5)) < 0.008
+    assert 1500 < near.sum() < 1900 and not near[:100].any()
+    inliers = points[near]
+    centred = inliers - inliers.mean(0)
+    axis = np.linalg.eigh(centred.T @ centred)[1][:, 0]
+    axis = axis if axis @ normal_true > 0 else -axis
+    np.testing.assert_allclose(normal[0].numpy(), axis, atol=1e-6)
+    assert offset[0].item() == pytest.approx(float(axis @ inliers.mean(0)), abs=1e-6)
+    assert float(normal[0].numpy() @ normal_true) > 0.99999   # the plane it was drawn from
+    few = torch.zeros(1, 2000, dtype=torch.bool)
+    few[0, 100:102] = True                                # two inliers: the plane is kept
+    kept = _refine(flat, few, start, torch.tensor([-1.5]), 0.008)
+    assert torch.equal(kept[0], start) and kept[1].item() == -1.5
+
+
+def test_a_batch_fits_each_image_as_it_fits_alone() -> None:
+    """The numpy steps run image by image inside a batch: the same planes as one at a time."""
+    scenes = [_tilted_scene(elevation_deg=e, box_height=b) for e, b in ((45, 0.3), (62, 0.1),
+                                                                         (55, 0.2))]
+    depth = torch.from_numpy(np.stack(scenes))
+    points = backproject(depth)
+    valid = torch.ones_like(depth, dtype=torch.bool)
+    valid[1, :30] = False
+    normal, offset = fit_floor(points, valid)
+    for i in range(3):
+        alone = fit_floor(points[i:i + 1], valid[i:i + 1])
+        assert torch.equal(normal[i:i + 1], alone[0]) and torch.equal(offset[i:i + 1], alone[1])
 
 
 def test_all_invalid_image_gives_zero_heights() -> None:
