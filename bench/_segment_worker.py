@@ -24,6 +24,7 @@ import sys
 import time
 
 import numpy as np
+from common import static_camera_copy  # bench/common.py: this script's folder is on sys.path
 
 
 def main() -> None:
@@ -75,8 +76,7 @@ def main() -> None:
         i = (k // copies) % len(depths)
         depth = depths[i]
         if copies > 1:   # a static camera: the same view, fresh noise on its valid pixels
-            noise = np.random.default_rng(k).normal(0.0, 0.002, depth.shape)
-            depth = np.where(np.isfinite(depth), depth + noise, depth).astype(np.float32)
+            depth = static_camera_copy(depth, np.random.default_rng(k))
         return depth, cameras[i]
 
     k = 0

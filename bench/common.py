@@ -45,6 +45,22 @@ def percentiles(values: list[float]) -> dict:
             "min": round(float(a.min()), 2)}
 
 
+# A static camera's frames in the benches: the same view again with fresh noise of this sd.
+STATIC_NOISE_M = 0.002
+
+
+def static_camera_copy(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """``depth`` seen again by a camera that did not move: fresh Gaussian noise of
+    ``STATIC_NOISE_M`` on its valid pixels, float32."""
+    return np.where(np.isfinite(depth), depth + rng.normal(0.0, STATIC_NOISE_M, depth.shape),
+                    depth).astype(np.float32)
+
+
+def static_camera_description(copies: int) -> str:
+    """What a frame description gains when each frame comes ``copies`` times."""
+    return f", each {copies} times in a row with fresh {STATIC_NOISE_M * 1e3:g} mm noise"
+
+
 def rotated(items: Sequence, r: int) -> Sequence:
     """``items`` in round ``r``'s order: rotated by ``r``, so that over the rounds each comes
     first as often, and a change in machine load hits every configuration alike."""

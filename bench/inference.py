@@ -53,6 +53,8 @@ from common import (  # noqa: E402
     record,
     rotated,
     sha256,
+    static_camera_copy,
+    static_camera_description,
     untrained_network,
 )
 
@@ -191,11 +193,10 @@ def repeat_as_static_camera(copies: int, *tables: dict) -> None:
     frames, true_labels, cameras, frames_desc = tables
     rng = np.random.default_rng(0)
     for who in list(frames):
-        frames[who] = [np.where(np.isfinite(f), f + rng.normal(0.0, 0.002, f.shape), f)
-                       .astype(np.float32) for f in frames[who] for _ in range(copies)]
+        frames[who] = [static_camera_copy(f, rng) for f in frames[who] for _ in range(copies)]
         true_labels[who] = [lab for lab in true_labels[who] for _ in range(copies)]
         cameras[who] = [cam for cam in cameras[who] for _ in range(copies)]
-        frames_desc[who] += f", each {copies} times in a row with fresh 2 mm noise"
+        frames_desc[who] += static_camera_description(copies)
 
 
 def load_average() -> list[float]:

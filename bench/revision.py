@@ -44,7 +44,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import percentiles, record, rotated, sha256  # noqa: E402
+from common import (  # noqa: E402
+    percentiles,
+    record,
+    rotated,
+    sha256,
+    static_camera_description,
+)
 from inference import load_frames  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -187,9 +193,8 @@ def main() -> None:
     if any(loaded[m][1][0] is None for m in models):   # synthetic for one: the same for all
         synthetic = next(loaded[m] for m in models if loaded[m][1][0] is None)
         loaded = {m: synthetic for m in models}
-    described = {m: loaded[m][3] + (f", each {args.static_camera} times in a row with fresh "
-                                    "2 mm noise" if args.static_camera else "")
-                 for m in models}
+    described = {m: loaded[m][3] + (static_camera_description(args.static_camera)
+                                    if args.static_camera else "") for m in models}
     with tempfile.TemporaryDirectory(prefix="bench_revision_") as tmp:
         codes = {HERE: REPO, commit[:12]: unpack(commit, Path(tmp))}
         workers, absent = {}, {}
