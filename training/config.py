@@ -116,6 +116,12 @@ class SceneConfig:
     # The objects.
     min_objects: int = 1
     max_objects: int = 4
+    # The share of episodes in which nothing was placed: the fixture and its scenery as
+    # drawn, no object (a cell before the place, or after the gripper lost its object out of
+    # view). Drawn from a stream of its own, so the other episodes are the ones a spec
+    # without it makes. Without such frames every training image shows an object, and a
+    # model learns to find one: on real empty totes it paints sensor holes' edges success.
+    empty_share: float = 0.0
     shape_weights: tuple[tuple[str, float], ...] = (("box", 1.0),)
     object_edge: tuple[float, float] = (0.08, 0.30)          # m, box edges, per axis
     cylinder_diameter: tuple[float, float] = (0.06, 0.20)    # m
@@ -220,6 +226,8 @@ class SceneConfig:
         _check_interval(o, "support_tilt_deg", self.support_tilt_deg, 0.0, 15.0)
         _check_int(o, "min_objects", self.min_objects, 1, 8)
         _check_int(o, "max_objects", self.max_objects, self.min_objects, 8)
+        # At most half: discovery clusters the objects of the other episodes.
+        _check_range(o, "empty_share", self.empty_share, 0.0, 0.5)
         self._validate_shapes(o)
         _check_interval(o, "object_edge", self.object_edge, 0.01, 1.0)
         _check_interval(o, "cylinder_diameter", self.cylinder_diameter, 0.01, 1.0)

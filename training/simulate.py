@@ -14,7 +14,7 @@ shape once a body has used it (removeCollisionShape refuses: "it is used"), so m
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +47,11 @@ class EpisodeDraw:
     start_orientations: list[list[float]]
     fixture: PlacedFixture
     shapes: list[str]
+
+    def without_objects(self) -> EpisodeDraw:
+        """The same fixture, support and pose, with nothing placed."""
+        return replace(self, sizes=[], masses=[], start_positions=[], start_orientations=[],
+                       shapes=[])
 
 
 def draw_shapes(scene: SceneConfig, n: int, rng: np.random.Generator) -> list[str]:
@@ -282,7 +287,7 @@ class World:
         max_steps = int(round(scene.max_episode_time / scene.timestep))
         still = [0] * len(self.objects)
         steps = 0
-        while steps < max_steps:
+        while self.objects and steps < max_steps:
             for _ in range(check_every):
                 pb.stepSimulation(physicsClientId=c)
             steps += check_every
@@ -311,15 +316,24 @@ class World:
             "friction": draw.friction,
             "restitution": draw.restitution,
             "sim_time": steps * scene.timestep,
-            "timed_out": min(still) < hold_needed,
+            "timed_out": min(still, default=hold_needed) < hold_needed,
             "objects": objects,
         }
+
+
+def is_empty_episode(scene: SceneConfig, run_seed: int, episode: int) -> bool:
+    """Whether nothing is placed in this episode (``scene.empty_share``), from a stream of its
+    own: the other episodes are drawn exactly as without the share."""
+    return (scene.empty_share > 0
+            and episode_rng(run_seed, episode, "empty").random() < scene.empty_share)
 
 
 def simulate_episode(world: World, run_seed: int, episode: int) -> dict:
     """Draw and simulate one episode; the result depends only on (run_seed, episode)."""
     draw = draw_episode(world.scene, episode_rng(run_seed, episode, "simulate"),
                         episode_rng(run_seed, episode, "fixture"))
+    if is_empty_episode(world.scene, run_seed, episode):
+        draw = draw.without_objects()
     result = world.run(draw)
     result["episode"] = episode
     return result

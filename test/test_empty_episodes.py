@@ -1,0 +1,81 @@
+"""Episodes in which nothing is placed (``scene.empty_share``): the fixture, its scenery and the
+camera as drawn, no object, no outcome pixel, and every other episode exactly as a spec
+without the share makes it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from task_outcome_ros.labels import BACKGROUND, FIXTURE, IGNORE
+from training.config import ConfigError
+from training.discover import label_table
+from training.render import render_episode
+from training.scene import load_scene
+from training.simulate import World, is_empty_episode, simulate_episode
+
+pytestmark = pytest.mark.unit
+
+RUN_SEED = 5
+
+
+def _spec(**fields):
+    base = load_scene("tote")
+    return dataclasses.replace(base, scene=dataclasses.replace(base.scene, **fields))
+
+
+def test_a_spec_without_the_share_never_empties_an_episode():
+    scene = _spec().scene
+    assert scene.empty_share == 0.0
+    assert not any(is_empty_episode(scene, RUN_SEED, i) for i in range(200))
+
+
+def test_the_share_empties_about_that_share_of_episodes():
+    scene = _spec(empty_share=0.25).scene
+    emptied = sum(is_empty_episode(scene, RUN_SEED, i) for i in range(2000))
+    assert 400 < emptied < 600      # 500 expected, sd ~19
+
+
+def test_empty_episodes_hold_nothing_and_the_others_are_unchanged():
+    with_share, without = _spec(empty_share=0.5).scene, _spec().scene
+    worlds = World(with_share), World(without)
+    try:
+        emptied = 0
+        for i in range(10):
+            a, b = (simulate_episode(w, RUN_SEED, i) for w in worlds)
+            if is_empty_episode(with_share, RUN_SEED, i):
+                emptied += 1
+                assert a["objects"] == [] and b["objects"]
+                assert a["sim_time"] == 0.0 and not a["timed_out"]
+                # The fixture and support as the episode drew them.
+                assert a["fixture"] == b["fixture"] and a["floor_z"] == b["floor_z"]
+            else:
+                assert a == b
+        assert 0 < emptied < 10
+    finally:
+        for w in worlds:
+            w.close()
+
+
+def test_an_empty_episode_renders_the_fixture_and_no_outcome():
+    spec = _spec(empty_share=0.5)
+    table = label_table({"inside", "outside", "partly_inside"}, spec)
+    episode = next(i for i in range(50) if is_empty_episode(spec.scene, RUN_SEED, i))
+    world = World(spec.scene)
+    try:
+        record = simulate_episode(world, RUN_SEED, episode)
+    finally:
+        world.close()
+    shot = render_episode(record, [], spec, RUN_SEED, table)
+    assert set(np.unique(shot["labels"])) <= {BACKGROUND, FIXTURE, IGNORE}   # IGNORE: no depth
+    assert (shot["labels"] == FIXTURE).sum() > 1000      # the tote is in view
+    assert not any(shot["record"]["present"].values())
+    assert not any(shot["record"]["pixel_counts"].values())
+
+
+@pytest.mark.parametrize("share", [-0.1, 0.6])
+def test_an_empty_share_outside_zero_to_a_half_is_refused(share):
+    with pytest.raises(ConfigError, match="empty_share"):
+        _spec(empty_share=share).scene.validate()
