@@ -11,7 +11,8 @@ import pytest
 
 from task_outcome_ros.labels import BACKGROUND, FIXTURE, IGNORE
 from training.config import ConfigError
-from training.discover import label_table
+from training.discover import DiscoveryError, cluster, label_table
+from training.overlaps import object_id_image, working_camera
 from training.render import render_episode
 from training.scene import load_scene
 from training.simulate import World, is_empty_episode, simulate_episode
@@ -21,8 +22,8 @@ pytestmark = pytest.mark.unit
 RUN_SEED = 5
 
 
-def _spec(**fields):
-    base = load_scene("tote")
+def _spec(task="tote", **fields):
+    base = load_scene(task)
     return dataclasses.replace(base, scene=dataclasses.replace(base.scene, **fields))
 
 
@@ -38,8 +39,11 @@ def test_the_share_empties_about_that_share_of_episodes():
     assert 400 < emptied < 600      # 500 expected, sd ~19
 
 
-def test_empty_episodes_hold_nothing_and_the_others_are_unchanged():
-    with_share, without = _spec(empty_share=0.5).scene, _spec().scene
+@pytest.mark.parametrize("task", ["default", "tote"])
+def test_empty_episodes_hold_nothing_and_the_others_are_unchanged(task):
+    """The tote spec builds a world per episode (its geometry is drawn); the default spec
+    reuses one, so there an emptied episode also leaves the world's history different."""
+    with_share, without = _spec(task, empty_share=0.5).scene, _spec(task).scene
     worlds = World(with_share), World(without)
     try:
         emptied = 0
@@ -68,11 +72,20 @@ def test_an_empty_episode_renders_the_fixture_and_no_outcome():
         record = simulate_episode(world, RUN_SEED, episode)
     finally:
         world.close()
+    assert record["objects"] == []
     shot = render_episode(record, [], spec, RUN_SEED, table)
     assert set(np.unique(shot["labels"])) <= {BACKGROUND, FIXTURE, IGNORE}   # IGNORE: no depth
     assert (shot["labels"] == FIXTURE).sum() > 1000      # the tote is in view
     assert not any(shot["record"]["present"].values())
     assert not any(shot["record"]["pixel_counts"].values())
+    # The frame's objects cast with ids of their own (training/overlaps.py): none.
+    camera = working_camera(shot["record"]["camera"], (160, 120))
+    assert not object_id_image(record, [], spec.scene, table, camera).any()
+
+
+def test_a_run_of_only_empty_episodes_is_a_clear_discovery_error():
+    with pytest.raises(DiscoveryError, match="no objects to cluster"):
+        cluster([], load_scene("tote"))
 
 
 @pytest.mark.parametrize("share", [-0.1, 0.6])

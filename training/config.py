@@ -118,8 +118,8 @@ class SceneConfig:
     max_objects: int = 4
     # The share of episodes in which nothing was placed: the fixture and its scenery as
     # drawn, no object (a cell before the place, or after the gripper lost its object out of
-    # view). Drawn from a stream of its own, so the other episodes are the ones a spec
-    # without it makes. Without such frames every training image shows an object, and a
+    # view). Drawn from a stream of its own, so the other episodes are simulated as a spec
+    # without it simulates them. Without such frames every training image shows an object, and a
     # model learns to find one: on real empty totes it paints sensor holes' edges success.
     empty_share: float = 0.0
     shape_weights: tuple[tuple[str, float], ...] = (("box", 1.0),)

@@ -89,6 +89,9 @@ def cluster(measurements: list[dict[str, float]], cfg: DatasetConfig) -> dict:
     """DBSCAN + explicit noise assignment + naming. Returns per-object names and statistics;
     raises DiscoveryError when DBSCAN finds no cluster or two clusters look alike."""
     x = features(measurements)
+    if not len(x):   # every episode empty (scene.empty_share): nothing to cluster
+        raise DiscoveryError("no objects to cluster: every episode placed nothing; "
+                             "simulate more episodes or lower scene.empty_share")
     min_samples = cfg.discover.min_samples(len(x))
     raw, core = dbscan_collapsed(x, cfg.discover.eps, min_samples)
     labels = raw.copy()

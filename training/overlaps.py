@@ -52,7 +52,8 @@ def object_id_image(episode: dict, outcomes: list[str], scene, table, camera: Ca
     boxes = scene_boxes(episode, outcomes, scene, table)
     n = len(episode["objects"])  # scene_boxes lists the objects last
     ided = ([replace(b, label=BACKGROUND) for b in boxes[:len(boxes) - n]]
-            + [replace(b, label=FIRST_OBJECT_ID + k) for k, b in enumerate(boxes[-n:])])
+            + [replace(b, label=FIRST_OBJECT_ID + k)
+               for k, b in enumerate(boxes[len(boxes) - n:])])   # not [-n:]: n may be 0
     _, ids, _ = render(ided, episode_fixture(episode, scene).room_floor_z, camera)
     return ids
 
