@@ -1,6 +1,6 @@
 """Episodes in which nothing is placed (``scene.empty_share``): the fixture, its scenery and the
-camera as drawn, no object, no outcome pixel, and every other episode exactly as a spec
-without the share makes it."""
+camera as drawn, no object, no outcome pixel, and every other episode simulated exactly as
+a spec without the share simulates it."""
 
 from __future__ import annotations
 
