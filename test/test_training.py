@@ -7,6 +7,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -950,6 +951,7 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
                                   Stress(sensor_model="kinect_v1"), table)
     assert not np.allclose(np.nan_to_num(tof), np.nan_to_num(kinect))
     sweeps = {"camera_roll_deg": (0.0, 10.0), "resolution": ("640x480", "320x240"),
+              "resolution_same_depth_error": ("320x240",),
               "sensor_model": ("", "tof"), "lost_depth_share": (0.0, 0.3)}
     report = run_robustness(ckpt, small_run, tmp_path / "rob", images=2, sweeps=sweeps,
                             progress=False)
@@ -974,6 +976,44 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
             low, high = entry["ci95"][k]
             assert 0.0 <= low <= got <= high <= 1.0 and high - low > 0.3  # 2 images: wide
     assert (tmp_path / "rob" / "robustness.png").stat().st_size > 5000
+
+
+def test_resolution_same_depth_error_keeps_the_sensors_error_in_metres(small_run):
+    """At half the size the plain ``resolution`` point keeps the sensor's pixel-unit errors (so
+    twice the depth error); ``resolution_same_depth_error`` halves them, and its frame lies
+    nearer the full-size frame (each 2 x 2 block's median) than the plain one does."""
+    from training.chunks import load_chunks
+    from training.config import NoiseConfig, dataset_config_from_dict, load_json
+    from training.robustness import Stress, same_depth_error, stressed_frame
+
+    noise = NoiseConfig(sigma_disparity_px=(0.04, 0.1), bias_disparity_px=0.1,
+                        lowfreq_disparity_px=0.08, lateral_sigma_px=0.5,
+                        disparity_subpixel=(6, 10), speckle_rate=4e-4)
+    half = same_depth_error(noise, 0.5)
+    assert half.sigma_disparity_px == pytest.approx((0.02, 0.05))
+    assert (half.bias_disparity_px, half.lowfreq_disparity_px) == pytest.approx((0.05, 0.04))
+    assert half.lateral_sigma_px == pytest.approx(0.25)
+    assert half.disparity_subpixel == (12, 20)           # the same steps in metres
+    assert half.speckle_rate == noise.speckle_rate and half.validate() == half
+    assert same_depth_error(noise, 2.0).disparity_subpixel == (3, 5)
+
+    cfg = dataset_config_from_dict(load_json(small_run / "config.json"))
+    cfg = dataclasses.replace(cfg, tof=dataclasses.replace(cfg.tof, share=0.0))
+    episodes = load_chunks(small_run / "simulate", cfg.episodes, cfg.chunk_size)
+    outcomes, table = load_outcomes(small_run)
+    full, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed, Stress(), table)
+    blocks = full.reshape(240, 2, 320, 2).transpose(0, 2, 1, 3).reshape(240, 320, 4)
+    with warnings.catch_warnings():   # blocks with no valid depth stay NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        reference = np.nanmedian(blocks, axis=2)
+    gaps = {}
+    for stress in (Stress(resolution="320x240"), Stress(resolution_same_depth_error="320x240")):
+        small, labels, k = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed, stress, table)
+        assert small.shape == labels.shape == (240, 320) and (k.width, k.height) == (320, 240)
+        both = np.isfinite(small) & np.isfinite(reference)
+        gaps[stress] = float(np.median(np.abs(small[both] - reference[both])))
+    plain, same = gaps.values()
+    assert same < 0.8 * plain, gaps   # about 12 against 37 mm on this frame
 
 
 def test_robustness_command_sweeps_only_the_factors_asked_for(small_run, tmp_path, capsys):

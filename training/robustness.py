@@ -16,6 +16,12 @@ image-level metric. Factors, each swept beyond what training drew:
 - ``focal_error``: camera_info's focal length off by this fraction (the true camera is not);
 - ``camera_info``: with and without camera_info;
 - ``resolution``: other image sizes, with the focal length scaled to keep the field of view;
+  the sensor keeps its errors in pixels (a sensor made at that size), so its depth errors in
+  metres scale with one over the focal length: twice the 640 x 480 sensor's at 320 x 240;
+- ``resolution_same_depth_error``: the same sizes with the sensor's pixel-unit errors
+  (disparity noise, quantisation, offset and low-frequency error, edge jitter) scaled with
+  the focal length, so that its depth errors in metres are the 640 x 480 sensor's: the image
+  size alone (the time-of-flight model's errors are in metres already);
 - ``lost_depth_share``: this share of each frame loses its depth in smooth blobs
   (``holes.lose_depth``), as real frames lose whole surfaces; their labels are ignored, so
   an object wholly inside them is not in the image's truth.
@@ -44,6 +50,7 @@ from training.chunks import load_chunks
 from training.config import (
     ROBUSTNESS_IMAGES,
     DatasetConfig,
+    NoiseConfig,
     dataset_config_from_dict,
     save_json,
 )
@@ -68,6 +75,7 @@ SWEEPS: dict[str, tuple] = {
     "focal_error": (0.0, -0.08, -0.04, 0.04, 0.08),
     "camera_info": (True, False),
     "resolution": ("640x480", "320x240", "1280x720"),
+    "resolution_same_depth_error": ("640x480", "320x240", "1280x720"),
     "lost_depth_share": (0.0, 0.15, 0.3),
 }
 # Factors plotted on their own y range (plot_robustness): they may take a model to chance.
@@ -85,6 +93,7 @@ class Stress:
     focal_error: float = 0.0
     camera_info: bool = True
     resolution: str = ""   # "WxH"; "" = the envelope's own
+    resolution_same_depth_error: str = ""   # "WxH", the sensor's errors in metres kept
     lost_depth_share: float = 0.0
 
 
@@ -119,13 +128,16 @@ def _stressed_config(cfg: DatasetConfig, stress: Stress) -> DatasetConfig:
     noise, tof = cfg.noise, cfg.tof
     if stress.camera_roll_deg:
         camera = dataclasses.replace(camera, roll_deg=(stress.camera_roll_deg,) * 2)
-    if stress.resolution:  # the same view at another size: focal length and offsets scaled
-        width, height = (int(v) for v in stress.resolution.split("x"))
+    size = stress.resolution or stress.resolution_same_depth_error
+    if size:  # the same view at another size: focal length and offsets scaled
+        width, height = (int(v) for v in size.split("x"))
         scale = width / camera.width
         camera = dataclasses.replace(
             camera, width=width, height=height,
             focal_px=tuple(f * scale for f in camera.focal_px),
             principal_offset_px=camera.principal_offset_px * scale)
+        if stress.resolution_same_depth_error:
+            noise = same_depth_error(noise, scale)
     if stress.noise_scale != 1.0:
         noise = dataclasses.replace(noise, **{
             name: _scaled(getattr(noise, name), stress.noise_scale)
@@ -136,6 +148,23 @@ def _stressed_config(cfg: DatasetConfig, stress: Stress) -> DatasetConfig:
     if stress.sensor_model:
         tof = dataclasses.replace(tof, share=1.0 if stress.sensor_model == "tof" else 0.0)
     return dataclasses.replace(cfg, camera=camera, noise=noise, tof=tof)
+
+
+# The structured-light model's errors given in image pixels (training/noise.py): at a focal
+# length k times as long, k times as many pixels make the same depth error.
+PIXEL_UNIT_ERRORS = ("sigma_disparity_px", "bias_disparity_px", "lowfreq_disparity_px",
+                     "lateral_sigma_px")
+
+
+def same_depth_error(noise: NoiseConfig, scale: float) -> NoiseConfig:
+    """The structured-light sensor ``noise`` for an image whose focal length is ``scale``
+    times as long, with the same depth errors in metres: its pixel-unit errors times
+    ``scale`` and its disparity steps (1 / ``disparity_subpixel`` px) too."""
+    scaled = {name: _scaled(getattr(noise, name), scale) for name in PIXEL_UNIT_ERRORS}
+    steps = noise.disparity_subpixel
+    scaled["disparity_subpixel"] = (tuple(max(1, round(v / scale)) for v in steps)
+                                    if isinstance(steps, tuple) else max(1, round(steps / scale)))
+    return dataclasses.replace(noise, **scaled)
 
 
 def _scaled(value: float | tuple[float, float], scale: float) -> float | tuple[float, float]:
