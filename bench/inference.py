@@ -186,6 +186,15 @@ def load_frames(n: int, run_dir: Path = RUN_DIR
             f"{n} synthetic frames (plane + boxes + 2 % NaN)")
 
 
+def load_frames_for(n: int, run_dirs: dict[str, Path]) -> dict[str, tuple]:
+    """``load_frames(n, run_dir)`` for each model's run folder; when any model gets synthetic
+    frames, every model gets those same ones: frames of two kinds would time the frames as
+    well as the models."""
+    loaded = {who: load_frames(n, run_dir) for who, run_dir in run_dirs.items()}
+    synthetic = [who for who, rows in loaded.items() if rows[1][0] is None]
+    return {who: loaded[synthetic[0]] for who in loaded} if synthetic else loaded
+
+
 def repeat_as_static_camera(copies: int, *tables: dict) -> None:
     """Each model's frames (``tables``: frames, true labels, cameras, descriptions, keyed by
     model) as a static camera sees them: every frame ``copies`` times in a row, the copies with
@@ -264,18 +273,13 @@ def main() -> None:
     shipped = resolve_model_path(None if default else args.model)
     threads = [int(t) for t in args.threads.split(",")]
     load_start = load_average()
-    frames, true_labels, cameras, frames_desc = {}, {}, {}, {}
-    frames[MODEL], true_labels[MODEL], cameras[MODEL], frames_desc[MODEL] = load_frames(
-        args.images, run_dir(args.model))
     reference = None if args.reference == "none" else args.reference
+    run_dirs = {MODEL: run_dir(args.model)}
     if reference is not None:
-        frames[REFERENCE], true_labels[REFERENCE], cameras[REFERENCE], frames_desc[REFERENCE] = \
-            load_frames(args.images, run_dir(reference))
-        synthetic = [who for who in (MODEL, REFERENCE) if true_labels[who][0] is None]
-        if synthetic:  # frames of two kinds would time the frames as well as the models
-            keep = synthetic[0]
-            for table in (frames, true_labels, cameras, frames_desc):
-                table[MODEL] = table[REFERENCE] = table[keep]
+        run_dirs[REFERENCE] = run_dir(reference)
+    loaded = load_frames_for(args.images, run_dirs)
+    frames, true_labels, cameras, frames_desc = (
+        {who: rows[k] for who, rows in loaded.items()} for k in range(4))
     if args.static_camera:
         repeat_as_static_camera(args.static_camera, frames, true_labels, cameras, frames_desc)
     with tempfile.TemporaryDirectory(prefix="bench_inference_") as tmp:

@@ -51,7 +51,7 @@ from common import (  # noqa: E402
     sha256,
     static_camera_description,
 )
-from inference import load_frames  # noqa: E402
+from inference import load_frames_for  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 WORKER = Path(__file__).resolve().parent / "_segment_worker.py"
@@ -189,10 +189,7 @@ def main() -> None:
     def run_dir(name: str) -> Path:
         return REPO / "runs" / name
 
-    loaded = {m: load_frames(args.images, run_dir(m)) for m in models}
-    if any(loaded[m][1][0] is None for m in models):   # synthetic for one: the same for all
-        synthetic = next(loaded[m] for m in models if loaded[m][1][0] is None)
-        loaded = {m: synthetic for m in models}
+    loaded = load_frames_for(args.images, {m: run_dir(m) for m in models})
     described = {m: loaded[m][3] + (static_camera_description(args.static_camera)
                                     if args.static_camera else "") for m in models}
     with tempfile.TemporaryDirectory(prefix="bench_revision_") as tmp:
