@@ -33,7 +33,7 @@ def _spec(tmp_path: Path, data: dict, name: str = "cell.yaml") -> Path:
 
 def _tote_with(tmp_path: Path, section: str, field: str, value) -> Path:
     data = yaml.safe_load((SCENES_DIR / "tote.yaml").read_text())
-    data[section][field] = value
+    data.setdefault(section, {})[field] = value
     return _spec(tmp_path, data)
 
 
@@ -90,6 +90,9 @@ def test_a_spec_may_leave_fields_to_the_default_task(tmp_path):
     ("noise", "model", "tof", ["noise.model", "kinect_v1", "the tof section"]),
     ("tof", "share", 1.5, ["tof.share", "[0.0, 1.0]"]),
     ("tof", "max_range", 1.0, ["camera.distance", "ToF sensor", "could not see"]),
+    ("stereo", "share", 1.5, ["stereo.share", "[0.0, 1.0]"]),
+    ("stereo", "share", 0.9, ["tof.share = 0.35", "stereo.share = 0.9", "together at most 1"]),
+    ("stereo", "window_px", 4.5, ["stereo.window_px", "whole number"]),
     ("camera", "info_focal_error", 0.5, ["camera.info_focal_error", "[0.0, 0.2]"]),
     ("noise", "sigma_disparity_px", [0.1, 0.03], ["noise.sigma_disparity_px", "min must not"]),
     ("noise", "sigma_disparity_px", [0.03, 3.0], ["noise.sigma_disparity_px[1]", "[0.0, 2.0]"]),

@@ -940,6 +940,12 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
                                             Stress(lost_depth_share=0.3), table)
     lost = np.isfinite(depth) & ~np.isfinite(holed)       # 30 % of the frame, minus old holes
     assert 0.2 < lost.mean() <= 0.3 + 1e-3 and (holed_labels[lost] == 255).all()
+    islanded, islanded_labels, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
+                                                  Stress(outlier_islands=3e-4), table)
+    moved = np.isfinite(depth) & np.isfinite(islanded) & (np.abs(islanded - depth) > 0.01)
+    assert 0.001 < moved.mean() < 0.05                     # small patches of wrong depth
+    np.testing.assert_array_equal(islanded_labels[np.isfinite(islanded)],
+                                  labels[np.isfinite(islanded)])
     kept = np.isfinite(holed)
     np.testing.assert_array_equal(holed[kept], depth[kept])
     np.testing.assert_array_equal(holed_labels[kept], labels[kept])
@@ -950,9 +956,14 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
     kinect, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
                                   Stress(sensor_model="kinect_v1"), table)
     assert not np.allclose(np.nan_to_num(tof), np.nan_to_num(kinect))
+    stereo, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
+                                  Stress(sensor_model="active_stereo"), table)
+    assert not np.allclose(np.nan_to_num(stereo), np.nan_to_num(kinect))
+    assert not np.allclose(np.nan_to_num(stereo), np.nan_to_num(tof))
     sweeps = {"camera_roll_deg": (0.0, 10.0), "resolution": ("640x480", "320x240"),
               "resolution_same_depth_error": ("320x240",),
-              "sensor_model": ("", "tof"), "lost_depth_share": (0.0, 0.3)}
+              "sensor_model": ("", "tof", "active_stereo"), "lost_depth_share": (0.0, 0.3),
+              "outlier_islands": (3e-4,)}
     report = run_robustness(ckpt, small_run, tmp_path / "rob", images=2, sweeps=sweeps,
                             progress=False)
     saved = load_json(tmp_path / "rob" / "robustness.json")

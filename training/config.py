@@ -54,7 +54,7 @@ RESERVED_WORDS = ("background", "image_all_correct", "presence_precision", "pres
 # Validation episodes per robustness stress point (training/robustness.py): 300 keeps the 95 %
 # interval around 0.97 at 0.94-0.98 (100 gave 0.92-0.99, wider than most gaps worth judging).
 ROBUSTNESS_IMAGES = 300
-NOISE_MODELS = ("kinect_v1",)   # noise: structured light; tof: a second, time-of-flight model
+NOISE_MODELS = ("kinect_v1",)   # noise: structured light; tof and stereo: the other two
 
 
 @dataclass(frozen=True)
@@ -509,6 +509,68 @@ _TOF_INTS = ("multipath_window_px",)
 TOF_PARAMETERS = tuple(_TOF_LIMITS)
 
 
+@dataclass(frozen=True)
+class StereoConfig:
+    """An active-stereo sensor (training/stereo.py; RealSense-D400-like): two infrared cameras
+    ``baseline`` m apart matched by blocks of ``window_px``, drawn instead of ``noise`` for a
+    ``share`` of the frames. The third sensor model: its errors are shaped by block matching
+    (foreground fattened over the background, noise correlated across a block, mismatched
+    islands of wrong depth), which neither the structured-light nor the ToF model makes.
+
+    Each parameter is a fixed value or a (min, max) range drawn per frame, as for ``noise``."""
+
+    share: float = 0.0                    # fraction of frames; 0 = never (draws nothing)
+    baseline: float = 0.05                # m, between the two infrared cameras
+    disparity_subpixel: int = 32          # disparity quantised to 1/32 px
+    sigma_disparity_px: float = 0.08      # subpixel matching error, per block
+    window_px: int = 7                    # matching block (even: the next odd size)
+    fattening_px: int = 2                 # foreground bled over the background at an edge
+    grazing_start_deg: float = 65.0       # dropout probability ramps from here ...
+    grazing_full_deg: float = 85.0        # ... to 1 here
+    mismatch_rate: float = 1e-4           # seeds of wrongly matched islands per pixel
+    mismatch_max_radius_px: int = 3
+    mismatch_disparity_px: float = 4.0    # their disparity off by up to this, either way
+    speckle_rate: float = 2e-4            # seeds of holes per pixel (no match found)
+    speckle_max_radius_px: int = 3
+    bias_disparity_px: float = 0.0        # calibration drift, as noise.bias_disparity_px
+    lowfreq_disparity_px: float = 0.0     # ... and noise.lowfreq_disparity_px
+    min_range: float = 0.3                # m
+    max_range: float = 6.0                # m
+
+    def validate(self) -> StereoConfig:
+        o = "stereo"
+        _check_range(o, "share", self.share, 0.0, 1.0)
+        _validate_drawn(o, self, _STEREO_LIMITS, _STEREO_INTS)
+        if self.bounds("grazing_full_deg")[0] < self.bounds("grazing_start_deg")[1]:
+            raise ConfigError(f"{o}.grazing_full_deg = {self.grazing_full_deg!r} must not be "
+                              f"below grazing_start_deg = {self.grazing_start_deg!r}")
+        if self.share > 0 and self.bounds("max_range")[0] <= self.bounds("min_range")[1]:
+            raise ConfigError(f"{o}.max_range = {self.max_range!r} must exceed min_range = "
+                              f"{self.min_range!r}")
+        return self
+
+    bounds = NoiseConfig.bounds
+    midpoint = NoiseConfig.midpoint
+
+    def draw(self, rng: np.random.Generator) -> StereoConfig:
+        """This frame's stereo sensor, drawn like ``NoiseConfig.draw``."""
+        return _draw_parameters(self, _STEREO_LIMITS, _STEREO_INTS, rng)
+
+
+_STEREO_LIMITS = {
+    "baseline": (0.01, 0.5), "disparity_subpixel": (1, 64),
+    "sigma_disparity_px": (0.0, 2.0), "window_px": (1, 31), "fattening_px": (0, 15),
+    "grazing_start_deg": (0.0, 90.0), "grazing_full_deg": (0.0, 90.0),
+    "mismatch_rate": (0.0, 0.01), "mismatch_max_radius_px": (0, 20),
+    "mismatch_disparity_px": (0.0, 64.0), "speckle_rate": (0.0, 0.05),
+    "speckle_max_radius_px": (0, 20), "bias_disparity_px": (0.0, 2.0),
+    "lowfreq_disparity_px": (0.0, 2.0), "min_range": (0.0, 10.0), "max_range": (0.0, 20.0),
+}
+_STEREO_INTS = ("disparity_subpixel", "window_px", "fattening_px", "mismatch_max_radius_px",
+                "speckle_max_radius_px")
+STEREO_PARAMETERS = tuple(_STEREO_LIMITS)
+
+
 def _validate_drawn(owner: str, cfg: Any, limits: dict, ints: tuple[str, ...]) -> None:
     """Every sensor parameter a fixed value or a (min, max) range within its limits."""
     for name, (lo, hi) in limits.items():
@@ -604,6 +666,7 @@ class DatasetConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     tof: TofConfig = field(default_factory=TofConfig)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
     discover: DiscoverConfig = field(default_factory=DiscoverConfig)
 
     def validate(self) -> DatasetConfig:
@@ -618,6 +681,11 @@ class DatasetConfig:
         self.camera.validate()
         self.noise.validate()
         self.tof.validate()
+        self.stereo.validate()
+        if self.tof.share + self.stereo.share > 1.0 + 1e-9:
+            raise ConfigError(f"tof.share = {self.tof.share} and stereo.share = "
+                              f"{self.stereo.share}: together at most 1 (the rest of the "
+                              "frames come from the noise section's sensor)")
         self.discover.validate()
         self._validate_camera_sees_fixture()
         return self
@@ -629,6 +697,8 @@ class DatasetConfig:
         sensors = [("sensor", "noise", self.noise)]
         if self.tof.share > 0:
             sensors.append(("ToF sensor", "tof", self.tof))
+        if self.stereo.share > 0:
+            sensors.append(("stereo sensor", "stereo", self.stereo))
         for label, section, sensor in sensors if self.noise.enabled else ():
             sensor_near = sensor.bounds("min_range")[1]  # the narrowest range any frame draws
             sensor_far = sensor.bounds("max_range")[0]
@@ -828,6 +898,10 @@ class TrainConfig:
     # spec's own (roll.roll_images: the image turned about its principal point, exact for
     # depth along the optical axis). 0 = off.
     aug_roll_deg: float = 0.0
+    # Outlier islands per training image (islands.working_islands): a rate U(0, aug_islands)
+    # per 640 x 480 pixel of small patches of wrong depth, as disparity sensors' wrong
+    # matches, labels kept. Whole images only (not carried through train_crop). 0 = off.
+    aug_islands: float = 0.0
     # (w, h): train on one crop of this size per image, cut from the input_size cache, its
     # heights above the support plane fitted on the whole image (training/crops.py): a finer
     # input_size at the coarse size's cost per step; inference runs on the whole image.
@@ -932,6 +1006,11 @@ class TrainConfig:
         if self.aug_holes and not self.augment:
             raise ConfigError(f"{o}.aug_holes = {self.aug_holes} needs augment (the holes are "
                               "drawn by the augmentation): set augment or aug_holes 0")
+        _check_range(o, "aug_islands", self.aug_islands, 0.0, 0.01)
+        if self.aug_islands and (not self.augment or self.train_crop is not None):
+            raise ConfigError(f"{o}.aug_islands = {self.aug_islands} needs augment on whole "
+                              "images (the islands are drawn by the augmentation, not on "
+                              "crops): set augment, drop train_crop, or aug_islands 0")
         _check_range(o, "aug_roll_deg", self.aug_roll_deg, 0.0, 45.0)
         if self.aug_roll_deg and not self.augment:
             raise ConfigError(f"{o}.aug_roll_deg = {self.aug_roll_deg} needs augment (the roll "

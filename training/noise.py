@@ -57,7 +57,7 @@ import cv2
 import numpy as np
 
 from task_outcome_ros.labels import DEFAULT_TABLE, IGNORE, LabelTable, colourise
-from training.config import NoiseConfig
+from training.config import NoiseConfig, StereoConfig
 
 # Projector at +x (camera's right): projector column p = u - PROJECTOR_SIDE * d.
 PROJECTOR_SIDE = 1
@@ -179,15 +179,7 @@ def apply_kinect_noise(depth: np.ndarray, labels: np.ndarray, cos_incidence: np.
         theta = np.arccos(np.clip(np.abs(cos, out=cos), 0.0, 1.0, out=cos), out=cos)  # rad
         start = np.float32(math.radians(cfg.grazing_start_deg))
         full = np.float32(math.radians(cfg.grazing_full_deg))
-        candidates = np.flatnonzero(valid & (theta > start))
-        if candidates.size:
-            t = theta.ravel()[candidates]
-            if full > start:
-                p_drop = np.clip((t - start) / (full - start), 0.0, 1.0)
-            else:
-                p_drop = np.ones_like(t)
-            dropped = candidates[rng.random(candidates.size, dtype=np.float32) < p_drop]
-            valid.ravel()[dropped] = False
+        drop_grazing(valid, theta, start, full, rng)
 
         # 4. Axial noise in disparity space, then 1/n px quantisation.
         sigma_d = np.full((h, w), cfg.sigma_disparity_px, dtype=np.float32)
@@ -214,8 +206,24 @@ def apply_kinect_noise(depth: np.ndarray, labels: np.ndarray, cos_incidence: np.
     return z_out.astype(np.float32, copy=False), lab
 
 
-def calibration_drift(shape: tuple[int, int], cfg: NoiseConfig, rng: np.random.Generator
-                      ) -> np.ndarray | np.float32:
+def drop_grazing(valid: np.ndarray, theta: np.ndarray, start: float, full: float,
+                 rng: np.random.Generator) -> None:
+    """Grazing dropout, in place on ``valid``: a valid pixel whose incidence ``theta`` (rad)
+    exceeds ``start`` is dropped with a probability ramping to 1 at ``full`` (Nguyen et al.
+    2012); one uniform draw per such pixel, in raster order."""
+    candidates = np.flatnonzero(valid & (theta > start))
+    if candidates.size:
+        t = theta.ravel()[candidates]
+        if full > start:
+            p_drop = np.clip((t - start) / (full - start), 0.0, 1.0)
+        else:
+            p_drop = np.ones_like(t)
+        dropped = candidates[rng.random(candidates.size, dtype=np.float32) < p_drop]
+        valid.ravel()[dropped] = False
+
+
+def calibration_drift(shape: tuple[int, int], cfg: NoiseConfig | StereoConfig,
+                      rng: np.random.Generator) -> np.ndarray | np.float32:
     """Disparity error (px) common to many pixels: a per-frame offset plus a smooth field.
     Draws nothing when both are 0, so specs without drift make the frames they always made."""
     drift = np.float32(0.0)
@@ -270,21 +278,21 @@ def speckle_holes(shape: tuple[int, int], rate: float, max_radius_px: int,
     return holes.astype(bool)
 
 
-def _check_inputs(depth, labels, cos_incidence, fx) -> tuple[np.ndarray, np.ndarray,
-                                                                np.ndarray]:
+def _check_inputs(depth, labels, cos_incidence, fx, who: str = "apply_kinect_noise"
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     labels = np.ascontiguousarray(labels)
     cos_incidence = np.ascontiguousarray(cos_incidence, dtype=np.float32)
     if depth.ndim != 2:
-        raise ValueError(f"apply_kinect_noise: depth must be HxW, got shape {depth.shape}")
+        raise ValueError(f"{who}: depth must be HxW, got shape {depth.shape}")
     if labels.shape != depth.shape or labels.dtype != np.uint8:
-        raise ValueError(f"apply_kinect_noise: labels must be uint8 {depth.shape}, "
+        raise ValueError(f"{who}: labels must be uint8 {depth.shape}, "
                          f"got {labels.dtype} {labels.shape}")
     if cos_incidence.shape != depth.shape:
-        raise ValueError(f"apply_kinect_noise: cos_incidence must have shape {depth.shape}, "
+        raise ValueError(f"{who}: cos_incidence must have shape {depth.shape}, "
                          f"got {cos_incidence.shape}")
     if not (math.isfinite(fx) and fx > 0):
-        raise ValueError(f"apply_kinect_noise: fx must be a positive number of pixels, got {fx}")
+        raise ValueError(f"{who}: fx must be a positive number of pixels, got {fx}")
     return depth, labels, cos_incidence
 
 

@@ -28,6 +28,7 @@ from task_outcome_ros.labels import (
 from training.chunks import load_chunks, run_chunks
 from training.config import (
     NOISE_PARAMETERS,
+    STEREO_PARAMETERS,
     TOF_PARAMETERS,
     CameraConfig,
     DatasetConfig,
@@ -38,6 +39,7 @@ from training.geometry import quat_to_matrix
 from training.noise import apply_kinect_noise
 from training.scenery import draw_neighbours
 from training.seeding import episode_rng, episode_seed
+from training.stereo import STEREO_MODEL, apply_stereo_noise
 from training.tof import apply_tof_noise
 
 NEAR = 0.05  # m: hits closer than this to the camera are ignored
@@ -317,18 +319,27 @@ def apply_sensor(clean: np.ndarray, labels: np.ndarray, cosine: np.ndarray, came
     """This frame's sensor model and parameters, drawn, then applied. Returns (depth, labels,
     the sensor's record or None when nothing was drawn). Each draw has a stream of its own, so
     a spec with one sensor and fixed values draws (and makes) exactly what it always did."""
-    use_tof = (cfg.tof.share > 0 and cfg.noise.enabled
-               and episode_rng(seed, index, "sensor_model").random() < cfg.tof.share)
-    if use_tof:
+    mixed = cfg.tof.share > 0 or cfg.stereo.share > 0
+    # One draw picks the model: ToF below tof.share, stereo in the next stereo.share, else
+    # the noise section's; a spec without stereo picks exactly as it always did.
+    pick = (episode_rng(seed, index, "sensor_model").random()
+            if mixed and cfg.noise.enabled else 1.0)
+    if pick < cfg.tof.share:
         tof = cfg.tof.draw(episode_rng(seed, index, "sensor"))
         depth, noisy_labels = apply_tof_noise(clean, labels, cosine, tof,
                                               episode_rng(seed, index, "noise"))
         return depth, noisy_labels, {"model": "tof",
                                      **{n: getattr(tof, n) for n in TOF_PARAMETERS}}
+    if pick < cfg.tof.share + cfg.stereo.share:
+        stereo = cfg.stereo.draw(episode_rng(seed, index, "sensor"))
+        depth, noisy_labels = apply_stereo_noise(clean, labels, cosine, camera.fx, stereo,
+                                                 episode_rng(seed, index, "noise"))
+        return depth, noisy_labels, {"model": STEREO_MODEL,
+                                     **{n: getattr(stereo, n) for n in STEREO_PARAMETERS}}
     sensor = cfg.noise.draw(episode_rng(seed, index, "sensor"))
     depth, noisy_labels = apply_kinect_noise(clean, labels, cosine, camera.fx, sensor,
                                              episode_rng(seed, index, "noise"))
-    if not (cfg.noise.drawn_per_frame() or cfg.tof.share > 0):
+    if not (cfg.noise.drawn_per_frame() or mixed):
         return depth, noisy_labels, None
     return depth, noisy_labels, {"model": sensor.model,
                                  **{n: getattr(sensor, n) for n in NOISE_PARAMETERS}}

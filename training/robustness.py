@@ -10,9 +10,10 @@ image-level metric. Factors, each swept beyond what training drew:
   physics stays that of the level support, so only what the camera sees changes;
 - ``camera_roll_deg``: the camera turned about its optical axis;
 - ``noise_scale``: the sensor's disparity noise, edge jitter and speckle (ToF: axial noise and
-  dropouts) times this factor;
-- ``sensor_model``: every frame from one sensor model (``kinect_v1`` structured light, or
-  ``tof``), instead of the spec's mix;
+  dropouts; stereo: disparity noise, mismatches and holes) times this factor;
+- ``sensor_model``: every frame from one sensor model (``kinect_v1`` structured light,
+  ``tof``, or ``active_stereo``: the stereo model, which no bundled spec trains on, with its
+  spec's parameters or the defaults of ``config.StereoConfig``), instead of the spec's mix;
 - ``focal_error``: camera_info's focal length off by this fraction (the true camera is not);
 - ``camera_info``: with and without camera_info;
 - ``resolution``: other image sizes, with the focal length scaled to keep the field of view;
@@ -24,7 +25,10 @@ image-level metric. Factors, each swept beyond what training drew:
   size alone (the time-of-flight model's errors are in metres already);
 - ``lost_depth_share``: this share of each frame loses its depth in smooth blobs
   (``holes.lose_depth``), as real frames lose whole surfaces; their labels are ignored, so
-  an object wholly inside them is not in the image's truth.
+  an object wholly inside them is not in the image's truth;
+- ``outlier_islands``: islands of wrong depth seeded at this rate per pixel
+  (``islands.add_islands``: up to 3 px in radius, each off by up to 4 px of disparity at a
+  0.075 m baseline, nearer or farther), as disparity sensors' wrong matches; labels kept.
 
 Calibration error the spec draws for camera_info is left out of every point, so that
 ``focal_error`` is the only one. Writes ``robustness.json`` (per factor its values and, at
@@ -45,12 +49,13 @@ from tqdm import tqdm
 
 from task_outcome_ros.camera import Intrinsics
 from task_outcome_ros.inference import OutcomeSegmenter
-from task_outcome_ros.labels import LabelTable, outcomes_present
+from task_outcome_ros.labels import IGNORE, LabelTable, outcomes_present
 from training.chunks import load_chunks
 from training.config import (
     ROBUSTNESS_IMAGES,
     DatasetConfig,
     NoiseConfig,
+    StereoConfig,
     dataset_config_from_dict,
     save_json,
 )
@@ -59,9 +64,11 @@ from training.discover import load_outcomes
 from training.evaluate import same_task
 from training.fixture import episode_fixture
 from training.holes import lose_depth
+from training.islands import add_islands
 from training.render import render_episode
 from training.seeding import episode_rng
 from training.stats import wilson_interval
+from training.stereo import STEREO_MODEL
 
 # What robustness.json keeps per factor, one list entry per value; the mistakes (episode
 # ids) let `python -m training compare` pair two models on each stress point.
@@ -71,15 +78,16 @@ SWEEPS: dict[str, tuple] = {
     "support_tilt_deg": (0.0, 1.5, 3.0, 4.5, 6.0),
     "camera_roll_deg": (0.0, 5.0, 10.0, 20.0),
     "noise_scale": (1.0, 0.5, 2.0, 3.0),
-    "sensor_model": ("", "kinect_v1", "tof"),
+    "sensor_model": ("", "kinect_v1", "tof", STEREO_MODEL),
     "focal_error": (0.0, -0.08, -0.04, 0.04, 0.08),
     "camera_info": (True, False),
     "resolution": ("640x480", "320x240", "1280x720"),
     "resolution_same_depth_error": ("640x480", "320x240", "1280x720"),
     "lost_depth_share": (0.0, 0.15, 0.3),
+    "outlier_islands": (0.0, 5e-5, 1e-4, 3e-4),
 }
 # Factors plotted on their own y range (plot_robustness): they may take a model to chance.
-OWN_RANGE_FACTORS = frozenset({"lost_depth_share"})
+OWN_RANGE_FACTORS = frozenset({"lost_depth_share", "outlier_islands"})
 
 
 @dataclass(frozen=True)
@@ -95,6 +103,7 @@ class Stress:
     resolution: str = ""   # "WxH"; "" = the envelope's own
     resolution_same_depth_error: str = ""   # "WxH", the sensor's errors in metres kept
     lost_depth_share: float = 0.0
+    outlier_islands: float = 0.0   # islands of wrong depth per pixel (training/islands.py)
 
 
 def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
@@ -110,6 +119,11 @@ def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
     out = render_episode({**episode, "fixture": fixture.to_record()}, outcomes,
                          _stressed_config(cfg, stress), seed, table)
     depth, labels = out["depth"], out["labels"]
+    if stress.outlier_islands:
+        fx = out["record"]["camera"]["fx"]
+        depth = add_islands(depth, fx, stress.outlier_islands,
+                            episode_rng(seed, episode["episode"], "islands"))
+        labels = np.where(np.isfinite(depth), labels, IGNORE).astype(np.uint8)
     if stress.lost_depth_share:
         blobs = int(episode_rng(seed, episode["episode"], "lost_depth").integers(2**31))
         depth, labels = lose_depth(depth, labels, stress.lost_depth_share, blobs)
@@ -125,7 +139,7 @@ def _stressed_config(cfg: DatasetConfig, stress: Stress) -> DatasetConfig:
     """The camera and sensor of ``cfg`` with the stress's roll, size, sensor and noise scale,
     and camera_info exact (the stress's focal error is applied by ``stressed_frame``)."""
     camera = dataclasses.replace(cfg.camera, info_focal_error=0.0, info_principal_error_px=0.0)
-    noise, tof = cfg.noise, cfg.tof
+    noise, tof, stereo = cfg.noise, cfg.tof, cfg.stereo
     if stress.camera_roll_deg:
         camera = dataclasses.replace(camera, roll_deg=(stress.camera_roll_deg,) * 2)
     size = stress.resolution or stress.resolution_same_depth_error
@@ -137,34 +151,45 @@ def _stressed_config(cfg: DatasetConfig, stress: Stress) -> DatasetConfig:
             focal_px=tuple(f * scale for f in camera.focal_px),
             principal_offset_px=camera.principal_offset_px * scale)
         if stress.resolution_same_depth_error:
-            noise = same_depth_error(noise, scale)
+            noise, stereo = same_depth_error(noise, scale), same_depth_error(stereo, scale)
     if stress.noise_scale != 1.0:
-        noise = dataclasses.replace(noise, **{
-            name: _scaled(getattr(noise, name), stress.noise_scale)
-            for name in ("sigma_disparity_px", "lateral_sigma_px", "speckle_rate")})
-        tof = dataclasses.replace(tof, **{
-            name: _scaled(getattr(tof, name), stress.noise_scale)
-            for name in ("sigma_1m", "dropout_rate")})
-    if stress.sensor_model:
-        tof = dataclasses.replace(tof, share=1.0 if stress.sensor_model == "tof" else 0.0)
-    return dataclasses.replace(cfg, camera=camera, noise=noise, tof=tof)
+        noise, tof, stereo = (
+            dataclasses.replace(sensor, **{name: _scaled(getattr(sensor, name),
+                                                         stress.noise_scale) for name in names})
+            for sensor, names in ((noise, NOISE_SCALED), (tof, TOF_SCALED),
+                                  (stereo, STEREO_SCALED)))
+    if stress.sensor_model:  # every frame from that one model
+        tof = dataclasses.replace(tof, share=float(stress.sensor_model == "tof"))
+        stereo = dataclasses.replace(stereo, share=float(stress.sensor_model == STEREO_MODEL))
+    return dataclasses.replace(cfg, camera=camera, noise=noise, tof=tof, stereo=stereo)
 
 
-# The structured-light model's errors given in image pixels (training/noise.py): at a focal
-# length k times as long, k times as many pixels make the same depth error.
-PIXEL_UNIT_ERRORS = ("sigma_disparity_px", "bias_disparity_px", "lowfreq_disparity_px",
-                     "lateral_sigma_px")
+# What the noise_scale points multiply, per sensor model.
+NOISE_SCALED = ("sigma_disparity_px", "lateral_sigma_px", "speckle_rate")
+TOF_SCALED = ("sigma_1m", "dropout_rate")
+STEREO_SCALED = ("sigma_disparity_px", "mismatch_rate", "speckle_rate")
+# The disparity models' errors given in image pixels (training/noise.py, training/stereo.py):
+# at a focal length k times as long, k times as many pixels make the same depth error. (The
+# stereo model's block and fattening sizes stay in pixels, as a camera's matcher does.)
+PIXEL_UNIT_ERRORS = {
+    NoiseConfig: ("sigma_disparity_px", "bias_disparity_px", "lowfreq_disparity_px",
+                  "lateral_sigma_px"),
+    StereoConfig: ("sigma_disparity_px", "bias_disparity_px", "lowfreq_disparity_px",
+                   "mismatch_disparity_px"),
+}
 
 
-def same_depth_error(noise: NoiseConfig, scale: float) -> NoiseConfig:
-    """The structured-light sensor ``noise`` for an image whose focal length is ``scale``
-    times as long, with the same depth errors in metres: its pixel-unit errors times
-    ``scale`` and its disparity steps (1 / ``disparity_subpixel`` px) too."""
-    scaled = {name: _scaled(getattr(noise, name), scale) for name in PIXEL_UNIT_ERRORS}
-    steps = noise.disparity_subpixel
+def same_depth_error(sensor: NoiseConfig | StereoConfig, scale: float
+                     ) -> NoiseConfig | StereoConfig:
+    """A disparity sensor for an image whose focal length is ``scale`` times as long, with
+    the same depth errors in metres: its pixel-unit errors times ``scale`` and its disparity
+    steps (1 / ``disparity_subpixel`` px) too."""
+    scaled = {name: _scaled(getattr(sensor, name), scale)
+              for name in PIXEL_UNIT_ERRORS[type(sensor)]}
+    steps = sensor.disparity_subpixel
     scaled["disparity_subpixel"] = (tuple(max(1, round(v / scale)) for v in steps)
                                     if isinstance(steps, tuple) else max(1, round(steps / scale)))
-    return dataclasses.replace(noise, **scaled)
+    return dataclasses.replace(sensor, **scaled)
 
 
 def _scaled(value: float | tuple[float, float], scale: float) -> float | tuple[float, float]:

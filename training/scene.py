@@ -19,7 +19,7 @@ from typing import Any
 from training.config import ConfigError, DatasetConfig, _from_dict
 
 SCENES_DIR = Path(__file__).resolve().parent / "scenes"
-SECTIONS = ("scene", "camera", "noise", "tof", "discover")
+SECTIONS = ("scene", "camera", "noise", "tof", "stereo", "discover")
 DEFAULT_SCENE = "default"
 
 

@@ -1,0 +1,68 @@
+"""Outlier islands (training/islands.py): the suite's full-resolution ones and training's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from training.config import ConfigError, TrainConfig
+from training.islands import add_islands, working_islands
+
+pytestmark = pytest.mark.unit
+
+
+def test_islands_move_small_patches_nearer_and_farther_and_keep_the_rest() -> None:
+    depth = np.full((240, 320), 2.0, np.float32)
+    depth[:10] = np.nan                                      # no depth stays no depth
+    out = add_islands(depth, 280.0, 1e-3, np.random.default_rng(0))
+    moved = np.isfinite(out) & (np.abs(out - 2.0) > 1e-4)
+    assert 0.002 < moved.mean() < 0.05
+    assert (out[moved] < 2.0).any() and (out[moved] > 2.0).any()
+    # Up to 4 px of disparity at 280 px x 0.075 m: 2 m reads between 1.14 and 8.4 m.
+    assert out[moved].min() > 1.1 and out[moved].max() < 8.5
+    assert np.isnan(out[:10]).all()
+    np.testing.assert_array_equal(add_islands(depth, 280.0, 0.0, np.random.default_rng(0)),
+                                  depth)
+
+
+def test_training_islands_change_a_few_valid_working_pixels_and_draw_a_fixed_amount() -> None:
+    depth = torch.full((4, 120, 160), 1.5)
+    valid = torch.ones_like(depth)
+    valid[:, :, :40] = 0
+    gen = torch.Generator().manual_seed(1)
+    out = working_islands(depth, valid, None, 3e-4, gen)
+    changed = (out - depth).abs() > 1e-6
+    assert not changed[:, :, :40].any()                      # never where there is no depth
+    assert 0 < int(changed.sum()) < 4 * 100                  # at most ~92 an image
+    assert (out[changed] < 1.5).any() and (out[changed] > 1.5).any()
+    # The same number of draws whatever the rate: a run's stream after them is the same.
+    a, b = torch.Generator().manual_seed(2), torch.Generator().manual_seed(2)
+    working_islands(depth, valid, None, 3e-4, a)
+    working_islands(depth, valid, None, 1e-5, b)
+    assert torch.equal(torch.rand(3, generator=a), torch.rand(3, generator=b))
+
+
+def test_augment_without_islands_draws_as_before_and_with_them_keeps_the_labels() -> None:
+    from training.train import augment
+
+    depth = 1.5 + 0.1 * torch.rand(2, 120, 160, generator=torch.Generator().manual_seed(3))
+    valid = torch.ones_like(depth)
+    labels = torch.randint(0, 5, (2, 120, 160), generator=torch.Generator().manual_seed(4))
+    plain = augment(depth, valid, labels, torch.Generator().manual_seed(5), holes=0.5)
+    off = augment(depth, valid, labels, torch.Generator().manual_seed(5), holes=0.5,
+                  islands=0.0)
+    on = augment(depth, valid, labels, torch.Generator().manual_seed(5), holes=0.5,
+                 islands=3e-4)
+    assert torch.equal(plain.depth, off.depth) and torch.equal(plain.labels, off.labels)
+    assert torch.equal(on.labels, plain.labels) and torch.equal(on.valid, plain.valid)
+    differs = (on.depth - plain.depth).abs() > 1e-6
+    assert 0 < int(differs.sum()) < 200
+
+
+def test_aug_islands_is_checked_and_refused_on_crops() -> None:
+    TrainConfig(aug_islands=3e-4).validate()
+    with pytest.raises(ConfigError, match="aug_islands"):
+        TrainConfig(aug_islands=0.5).validate()
+    with pytest.raises(ConfigError, match="not on crops|train_crop"):
+        TrainConfig(aug_islands=3e-4, input_size=(320, 240), train_crop=(160, 120)).validate()
