@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from sensor_helpers import H, W, step_scene
 
 from task_outcome_ros.labels import DEFAULT_TABLE, IGNORE
 from training.config import ConfigError, DatasetConfig, StereoConfig, TofConfig
@@ -19,23 +20,13 @@ from training.stereo import (
 
 pytestmark = pytest.mark.unit
 
-H, W = 120, 160
 FX = 557.5
 QUIET = StereoConfig(share=1.0, sigma_disparity_px=0.0, mismatch_rate=0.0, speckle_rate=0.0,
                      disparity_subpixel=64)
 
 
-def _step_scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A plane at 2 m with a box face at 1.7 m in the middle columns."""
-    depth = np.full((H, W), 2.0, np.float32)
-    labels = np.zeros((H, W), np.uint8)
-    depth[:, 60:100] = 1.7
-    labels[:, 60:100] = 2
-    return depth, labels, np.ones((H, W), np.float32)
-
-
 def test_the_foreground_bleeds_over_the_background_and_takes_its_label_there() -> None:
-    depth, labels, cos = _step_scene()
+    depth, labels, cos = step_scene()
     z, lab = apply_stereo_noise(depth, labels, cos, FX, dataclasses.replace(QUIET,
                                                                            fattening_px=2),
                                 np.random.default_rng(0))
@@ -100,7 +91,7 @@ def test_mismatched_islands_read_wrong_depth_and_keep_the_truth_as_labels() -> N
 
 
 def test_the_same_seed_gives_the_same_frame() -> None:
-    depth, labels, cos = _step_scene()
+    depth, labels, cos = step_scene()
     cfg = StereoConfig(share=1.0)
     a = apply_stereo_noise(depth, labels, cos, FX, cfg, np.random.default_rng(5))
     b = apply_stereo_noise(depth, labels, cos, FX, cfg, np.random.default_rng(5))

@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from sensor_helpers import H, W, step_scene
 
 from task_outcome_ros.labels import IGNORE
 from training.config import ConfigError, NoiseConfig, TofConfig
@@ -14,20 +15,10 @@ from training.tof import apply_tof_noise
 
 pytestmark = pytest.mark.unit
 
-H, W = 120, 160
-
-
-def _step_scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A plane at 2 m with a box face at 1.7 m in the middle columns."""
-    depth = np.full((H, W), 2.0, np.float32)
-    labels = np.zeros((H, W), np.uint8)
-    depth[:, 60:100] = 1.7
-    labels[:, 60:100] = 2
-    return depth, labels, np.ones((H, W), np.float32)
 
 
 def test_flying_pixels_sit_between_the_surfaces_at_depth_edges_only() -> None:
-    depth, labels, cos = _step_scene()
+    depth, labels, cos = step_scene()
     cfg = TofConfig(share=1.0, sigma_1m=0.0, flying_pixel_rate=1.0, multipath_gain=0.0,
                     dropout_rate=0.0, amplitude_cutoff=0.0, amplitude_soft=0.0)
     z, lab = apply_tof_noise(depth, labels, cos, cfg, np.random.default_rng(0))
@@ -39,7 +30,7 @@ def test_flying_pixels_sit_between_the_surfaces_at_depth_edges_only() -> None:
 
 
 def test_tof_has_no_projector_shadow_where_structured_light_has_one() -> None:
-    depth, labels, cos = _step_scene()
+    depth, labels, cos = step_scene()
     quiet = TofConfig(share=1.0, flying_pixel_rate=0.0, dropout_rate=0.0)
     z, _ = apply_tof_noise(depth, labels, cos, quiet, np.random.default_rng(1))
     assert np.isfinite(z).all()
@@ -72,7 +63,7 @@ def test_tof_noise_grows_with_range_and_is_seeded() -> None:
         spreads.append(float(np.std(z)))
     assert spreads[0] == pytest.approx(0.003, rel=0.1)
     assert spreads[1] == pytest.approx(0.012, rel=0.1)        # z^2
-    depth, labels, cos = _step_scene()
+    depth, labels, cos = step_scene()
     a = apply_tof_noise(depth, labels, cos, TofConfig(share=1.0), np.random.default_rng(4))
     b = apply_tof_noise(depth, labels, cos, TofConfig(share=1.0), np.random.default_rng(4))
     assert np.array_equal(a[0], b[0], equal_nan=True) and np.array_equal(a[1], b[1])

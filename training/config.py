@@ -482,12 +482,7 @@ class TofConfig:
     max_range: float = 5.0                # m
 
     def validate(self) -> TofConfig:
-        o = "tof"
-        _check_range(o, "share", self.share, 0.0, 1.0)
-        _validate_drawn(o, self, _TOF_LIMITS, _TOF_INTS)
-        if self.share > 0 and self.bounds("max_range")[0] <= self.bounds("min_range")[1]:
-            raise ConfigError(f"{o}.max_range = {self.max_range!r} must exceed min_range = "
-                              f"{self.min_range!r}")
+        _validate_shared_sensor("tof", self, _TOF_LIMITS, _TOF_INTS)
         return self
 
     bounds = NoiseConfig.bounds
@@ -538,15 +533,10 @@ class StereoConfig:
     max_range: float = 6.0                # m
 
     def validate(self) -> StereoConfig:
-        o = "stereo"
-        _check_range(o, "share", self.share, 0.0, 1.0)
-        _validate_drawn(o, self, _STEREO_LIMITS, _STEREO_INTS)
+        _validate_shared_sensor("stereo", self, _STEREO_LIMITS, _STEREO_INTS)
         if self.bounds("grazing_full_deg")[0] < self.bounds("grazing_start_deg")[1]:
-            raise ConfigError(f"{o}.grazing_full_deg = {self.grazing_full_deg!r} must not be "
-                              f"below grazing_start_deg = {self.grazing_start_deg!r}")
-        if self.share > 0 and self.bounds("max_range")[0] <= self.bounds("min_range")[1]:
-            raise ConfigError(f"{o}.max_range = {self.max_range!r} must exceed min_range = "
-                              f"{self.min_range!r}")
+            raise ConfigError(f"stereo.grazing_full_deg = {self.grazing_full_deg!r} must not "
+                              f"be below grazing_start_deg = {self.grazing_start_deg!r}")
         return self
 
     bounds = NoiseConfig.bounds
@@ -569,6 +559,17 @@ _STEREO_LIMITS = {
 _STEREO_INTS = ("disparity_subpixel", "window_px", "fattening_px", "mismatch_max_radius_px",
                 "speckle_max_radius_px")
 STEREO_PARAMETERS = tuple(_STEREO_LIMITS)
+
+
+def _validate_shared_sensor(owner: str, cfg: Any, limits: dict, ints: tuple[str, ...]
+                            ) -> None:
+    """A sensor drawn for a ``share`` of the frames (``tof``, ``stereo``): the share, every
+    parameter within its limits, and a range that leaves room to measure when it is drawn."""
+    _check_range(owner, "share", cfg.share, 0.0, 1.0)
+    _validate_drawn(owner, cfg, limits, ints)
+    if cfg.share > 0 and cfg.bounds("max_range")[0] <= cfg.bounds("min_range")[1]:
+        raise ConfigError(f"{owner}.max_range = {cfg.max_range!r} must exceed min_range = "
+                          f"{cfg.min_range!r}")
 
 
 def _validate_drawn(owner: str, cfg: Any, limits: dict, ints: tuple[str, ...]) -> None:

@@ -6,12 +6,13 @@ nearer than their surroundings per frame (4-21 px at 640 x 480, some 30 cm neare
 tote's floor at 0.7 m), and the active-stereo model makes them (``stereo.py``). Neither of
 the sensor models the bundled specs train on does, and on frames from the active-stereo
 model default model 0.13.0 drops from 0.98 to 0.29, most of it to these islands
-(docs/evaluation.md). Three users, one draw:
+(docs/evaluation.md). Two forms of one shape (``ISLAND_*``):
 
-- ``disparity_islands``: a full-resolution field of islands, each off by its own disparity
-  (``stereo.py``'s mismatches, and the robustness suite's ``outlier_islands`` points via
-  ``add_islands``);
-- ``working_islands``: the same at the working size, for training (``TrainConfig.aug_islands``).
+- ``disparity_islands``: a full-resolution field of islands, each off by its own disparity,
+  for ``stereo.py``'s mismatches and, through ``add_islands``, the robustness suite's
+  ``outlier_islands`` points;
+- ``working_islands``: islands drawn at the working size, for training
+  (``TrainConfig.aug_islands``).
 
 Labels stay the truth of what lies there: an island is the sensor's error, not an object.
 """

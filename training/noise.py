@@ -190,10 +190,8 @@ def apply_kinect_noise(depth: np.ndarray, labels: np.ndarray, cos_incidence: np.
             sigma_d += grazing_m * disparity / z               # dz -> dd: d(fb/z) = fb/z^2 dz
         noisy = disparity + _standard_normal(rng, (h, w)) * sigma_d
         noisy += calibration_drift((h, w), cfg, rng)
-        n = np.float32(cfg.disparity_subpixel)
-        noisy = np.rint(noisy * n) / n
-        valid &= noisy > 0
-        z_out = fb / noisy
+        z_out, matched = quantised_depth(noisy, fb, cfg.disparity_subpixel)
+        valid &= matched
 
         # 5. Speckle holes.
         valid &= ~speckle_holes((h, w), cfg.speckle_rate, cfg.speckle_max_radius_px, rng)
@@ -220,6 +218,15 @@ def drop_grazing(valid: np.ndarray, theta: np.ndarray, start: float, full: float
             p_drop = np.ones_like(t)
         dropped = candidates[rng.random(candidates.size, dtype=np.float32) < p_drop]
         valid.ravel()[dropped] = False
+
+
+def quantised_depth(disparity: np.ndarray, fb: np.float32, subpixel: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(depth, positive) of a noisy disparity image quantised to 1 / ``subpixel`` px:
+    z = fb / d, and where d stayed positive (elsewhere the depth is meaningless)."""
+    n = np.float32(subpixel)
+    quantised = np.rint(disparity * n) / n
+    return fb / quantised, quantised > 0
 
 
 def calibration_drift(shape: tuple[int, int], cfg: NoiseConfig | StereoConfig,

@@ -49,6 +49,7 @@ from training.noise import (
     calibration_drift,
     drop_grazing,
     projector_shadow,
+    quantised_depth,
     speckle_holes,
 )
 
@@ -95,10 +96,8 @@ def apply_stereo_noise(depth: np.ndarray, labels: np.ndarray, cos_incidence: np.
         # 5. Mismatched islands.
         noisy += disparity_islands((h, w), cfg.mismatch_rate, cfg.mismatch_max_radius_px,
                                    cfg.mismatch_disparity_px, rng)
-        n = np.float32(cfg.disparity_subpixel)
-        noisy = np.rint(noisy * n) / n
-        valid &= noisy > 0
-        z = fb / noisy
+        z, matched = quantised_depth(noisy, fb, cfg.disparity_subpixel)
+        valid &= matched
 
         # 6. Holes where nothing matched, and the range limits.
         valid &= ~speckle_holes((h, w), cfg.speckle_rate, cfg.speckle_max_radius_px, rng)
