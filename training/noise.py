@@ -175,8 +175,7 @@ def apply_kinect_noise(depth: np.ndarray, labels: np.ndarray, cos_incidence: np.
         valid &= ~projector_shadow(disparity)
 
         # 3. Grazing dropout; theta also drives Nguyen's angular growth of the axial noise.
-        np.copyto(cos, np.float32(1.0), where=np.isnan(cos))
-        theta = np.arccos(np.clip(np.abs(cos, out=cos), 0.0, 1.0, out=cos), out=cos)  # rad
+        theta = incidence_angle(cos)                           # rad, in cos's memory
         start = np.float32(math.radians(cfg.grazing_start_deg))
         full = np.float32(math.radians(cfg.grazing_full_deg))
         drop_grazing(valid, theta, start, full, rng)
@@ -202,6 +201,14 @@ def apply_kinect_noise(depth: np.ndarray, labels: np.ndarray, cos_incidence: np.
     z_out[~valid] = np.nan
     lab[~valid] = IGNORE
     return z_out.astype(np.float32, copy=False), lab
+
+
+def incidence_angle(cos: np.ndarray) -> np.ndarray:
+    """The angle (rad) between the viewing ray and the surface normal from |cos| of it,
+    computed in place in ``cos`` (pass a copy you own): NaN (no hit, or unknown) reads as
+    facing the camera, so it is never dropped as grazing."""
+    np.copyto(cos, np.float32(1.0), where=np.isnan(cos))
+    return np.arccos(np.clip(np.abs(cos, out=cos), 0.0, 1.0, out=cos), out=cos)
 
 
 def drop_grazing(valid: np.ndarray, theta: np.ndarray, start: float, full: float,

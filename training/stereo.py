@@ -48,6 +48,7 @@ from training.noise import (
     _standard_normal,
     calibration_drift,
     drop_grazing,
+    incidence_angle,
     projector_shadow,
     quantised_depth,
     speckle_holes,
@@ -83,8 +84,7 @@ def apply_stereo_noise(depth: np.ndarray, labels: np.ndarray, cos_incidence: np.
         disparity, lab = fatten_foreground(disparity, labels, valid, int(cfg.fattening_px))
 
         # 3. Grazing dropout.
-        cos = np.where(np.isfinite(cos), np.abs(cos), np.float32(1.0)).astype(np.float32)
-        theta = np.arccos(np.clip(cos, 0.0, 1.0))
+        theta = incidence_angle(cos.copy())      # cos may be the caller's array
         drop_grazing(valid, theta, np.float32(math.radians(cfg.grazing_start_deg)),
                      np.float32(math.radians(cfg.grazing_full_deg)), rng)
 
