@@ -16,7 +16,6 @@ from training.tof import apply_tof_noise
 pytestmark = pytest.mark.unit
 
 
-
 def test_flying_pixels_sit_between_the_surfaces_at_depth_edges_only() -> None:
     depth, labels, cos = step_scene()
     cfg = TofConfig(share=1.0, sigma_1m=0.0, flying_pixel_rate=1.0, multipath_gain=0.0,
