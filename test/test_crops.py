@@ -161,6 +161,24 @@ def test_a_turned_crop_keeps_its_heights_and_labels_on_the_box():
         assert (x[i, 2][floor] * scale).abs().quantile(0.99) < 0.01         # the floor, 0 m
 
 
+def test_islands_on_crops_move_depths_and_heights_and_keep_the_labels():
+    arrays = scene_arrays()
+    measure_planes(arrays, NORM)
+    plain, plain_labels = crop_batch(arrays, np.arange(3), (96, 72),
+                                     torch.Generator().manual_seed(3), 0.0, NORM, holes=0.5)
+    off, off_labels = crop_batch(arrays, np.arange(3), (96, 72),
+                                 torch.Generator().manual_seed(3), 0.0, NORM, holes=0.5,
+                                 islands=0.0)
+    assert torch.equal(off, plain) and torch.equal(off_labels, plain_labels)  # 0: as before
+    x, labels = crop_batch(arrays, np.arange(3), (96, 72), torch.Generator().manual_seed(3),
+                           0.0, NORM, holes=0.5, islands=1e-3)
+    assert torch.equal(labels, plain_labels) and torch.equal(x[:, 1], plain[:, 1])
+    moved = (x[:, 0] - plain[:, 0]).abs() > 1e-6
+    assert 0 < int(moved.sum()) < 0.05 * moved.numel()
+    assert not moved[plain[:, 1] == 0].any()                  # never where there is no depth
+    assert torch.equal((x[:, 2] - plain[:, 2]).abs() > 1e-6, moved)   # heights follow
+
+
 def test_the_roll_margins_hold_the_turned_crop():
     for crop, deg in (((160, 120), 15.0), ((96, 72), 45.0), ((64, 128), 5.0)):
         mx, my = roll_margins(crop, deg)

@@ -60,9 +60,26 @@ def test_augment_without_islands_draws_as_before_and_with_them_keeps_the_labels(
     assert 0 < int(differs.sum()) < 200
 
 
-def test_aug_islands_is_checked_and_refused_on_crops() -> None:
+def test_islands_on_a_crop_are_as_dense_as_on_the_whole_image() -> None:
+    # A 160 x 120 crop of a 320 x 240 image: a working pixel stands for 4 pixels at 640 x 480,
+    # not the 16 it would as a whole 160 x 120 image, so about a quarter of the islands.
+    depth = torch.full((64, 120, 160), 1.5)
+    valid = torch.ones_like(depth)
+
+    def changed(image_width: int | None) -> int:
+        out = working_islands(depth, valid, None, 3e-4, torch.Generator().manual_seed(6),
+                              image_width=image_width)
+        return int(((out - depth).abs() > 1e-6).sum())
+
+    whole, crop = changed(None), changed(320)
+    assert crop > 0 and 2.5 < whole / crop < 6.0
+    assert changed(160) == whole                               # its own width: the same
+
+
+def test_aug_islands_is_checked_and_taken_on_crops() -> None:
     TrainConfig(aug_islands=3e-4).validate()
+    TrainConfig(aug_islands=3e-4, input_size=(320, 240), train_crop=(160, 120)).validate()
     with pytest.raises(ConfigError, match="aug_islands"):
         TrainConfig(aug_islands=0.5).validate()
-    with pytest.raises(ConfigError, match="not on crops|train_crop"):
-        TrainConfig(aug_islands=3e-4, input_size=(320, 240), train_crop=(160, 120)).validate()
+    with pytest.raises(ConfigError, match="aug_islands.*augment"):
+        TrainConfig(aug_islands=3e-4, augment=False).validate()

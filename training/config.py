@@ -901,7 +901,7 @@ class TrainConfig:
     aug_roll_deg: float = 0.0
     # Outlier islands per training image (islands.working_islands): a rate U(0, aug_islands)
     # per 640 x 480 pixel of small patches of wrong depth, as disparity sensors' wrong
-    # matches, labels kept. Whole images only (not carried through train_crop). 0 = off.
+    # matches, labels kept; on whole images and on train_crop's crops alike. 0 = off.
     aug_islands: float = 0.0
     # (w, h): train on one crop of this size per image, cut from the input_size cache, its
     # heights above the support plane fitted on the whole image (training/crops.py): a finer
@@ -1008,10 +1008,10 @@ class TrainConfig:
             raise ConfigError(f"{o}.aug_holes = {self.aug_holes} needs augment (the holes are "
                               "drawn by the augmentation): set augment or aug_holes 0")
         _check_range(o, "aug_islands", self.aug_islands, 0.0, 0.01)
-        if self.aug_islands and (not self.augment or self.train_crop is not None):
-            raise ConfigError(f"{o}.aug_islands = {self.aug_islands} needs augment on whole "
-                              "images (the islands are drawn by the augmentation, not on "
-                              "crops): set augment, drop train_crop, or aug_islands 0")
+        if self.aug_islands and not self.augment:
+            raise ConfigError(f"{o}.aug_islands = {self.aug_islands} needs augment (the "
+                              "islands are drawn by the augmentation): set augment or "
+                              "aug_islands 0")
         _check_range(o, "aug_roll_deg", self.aug_roll_deg, 0.0, 45.0)
         if self.aug_roll_deg and not self.augment:
             raise ConfigError(f"{o}.aug_roll_deg = {self.aug_roll_deg} needs augment (the roll "

@@ -11,8 +11,9 @@ A crop may hold too little of the floor to fit the support plane on, so each cac
 plane is fitted once, on the whole image, before training (``measure_planes``: the plane
 ``model.network_input`` fits). A pixel's height above it is linear in its depth along its
 ray, ``h = z (n . r(u, v)) - c`` (``floor.backproject``'s rays), so a crop's heights are
-computed from its depths after every augmentation: re-drawn noise, lost depth, and a roll,
-which moves each pixel's ray to the one it was turned from (``roll.roll_sources``).
+computed from its depths after every augmentation: re-drawn noise, lost depth, outlier
+islands, and a roll, which moves each pixel's ray to the one it was turned from
+(``roll.roll_sources``).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from task_outcome_ros.floor import backproject, pixel_rays, support_plane
 from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE
 from task_outcome_ros.model import INTRINSICS_FROM_CAMERA_INFO, network_input
 from training.holes import punch_holes
+from training.islands import working_islands
 from training.redrawn_noise import axial_noise, drop_pixels, noise_levels
 from training.roll import draw_roll, roll_images, roll_sources
 
@@ -126,16 +128,19 @@ def cut(array: np.ndarray, rows, origins: np.ndarray, size: tuple[int, int], fil
 
 
 def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.Generator,
-               noise_level: float, norm: dict, holes: float = 0.0, roll_deg: float = 0.0
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+               noise_level: float, norm: dict, holes: float = 0.0, roll_deg: float = 0.0,
+               islands: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """The network input (N, C, h, w) and labels (N, h, w) of one ``crop`` (w, h) of each
     cached image ``idx``, augmented as ``train.augment`` augments whole images: turned as by
     a camera rolled U(-``roll_deg``, ``roll_deg``) more (``roll.roll_images``, about the
     crop's centre), re-drawn axial noise of U(0, ``noise_level``) times the sensor's at the
     cache's working size (``redrawn_noise.noise_levels``), 0-3 % of pixels dropped, ``holes``
-    of the crops losing depth in blobs (``holes.punch_holes``), mirrored half the time.
-    The heights come last, from the augmented depths (module docstring). ``arrays`` must
-    hold ``measure_planes``' answers."""
+    of the crops losing depth in blobs (``holes.punch_holes``), outlier islands at up to
+    ``islands`` per 640 x 480 pixel (``islands.working_islands``, scaled by the whole image's
+    width; drawn after the holes, so 0 leaves the stream as it was), mirrored half the time.
+    The heights come last, from the augmented depths (module docstring): an island moves
+    its pixel's height as a sensor's would. ``arrays`` must hold ``measure_planes``'
+    answers."""
     idx = np.asarray(idx)
     n, (cw, ch) = len(idx), crop
     full_h, full_w = arrays["depth"].shape[1:]
@@ -164,11 +169,16 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     valid = drop_pixels(valid, gen)
     if holes > 0:
         valid, labels = punch_holes(valid, labels, holes, gen)
+    # The mirror is drawn before the islands, so that they leave it as it was.
+    flip = (torch.rand(n, generator=gen) < 0.5)[:, None, None]
+    if islands > 0:
+        camera = (torch.from_numpy(np.asarray(arrays["intrinsics"][idx], np.float32))
+                  if "intrinsics" in arrays else None)
+        depth = working_islands(depth, valid, camera, islands, gen, image_width=full_w)
     height = heights_along_rays(depth, valid > 1e-6, u, v, (full_w, full_h),
                                 torch.from_numpy(arrays[PLANE_NORMAL_KEY][idx]),
                                 torch.from_numpy(arrays[PLANE_OFFSET_KEY][idx]),
                                 image_intrinsics(arrays, idx, norm), norm["focal_over_width"])
-    flip = (torch.rand(n, generator=gen) < 0.5)[:, None, None]
     depth, valid, height, labels = (torch.where(flip, t.flip(-1), t)
                                     for t in (depth, valid, height, labels))
     return network_input(depth, valid, norm, height_m=height), labels

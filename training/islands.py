@@ -12,7 +12,7 @@ model default model 0.13.0 drops from 0.98 to 0.29, most of it to these islands
   for ``stereo.py``'s mismatches and, through ``add_islands``, the robustness suite's
   ``outlier_islands`` points;
 - ``working_islands``: islands drawn at the working size, for training
-  (``TrainConfig.aug_islands``).
+  (``TrainConfig.aug_islands``), on whole images and on crops of them alike.
 
 Labels stay the truth of what lies there: an island is the sensor's error, not an object.
 """
@@ -69,15 +69,19 @@ def add_islands(depth: np.ndarray, fx: float, rate: float, rng: np.random.Genera
 
 
 def working_islands(depth: torch.Tensor, valid: torch.Tensor, intrinsics: torch.Tensor | None,
-                    max_rate: float, gen: torch.Generator) -> torch.Tensor:
+                    max_rate: float, gen: torch.Generator, image_width: int | None = None
+                    ) -> torch.Tensor:
     """Training images (N, h, w) at the working size with outlier islands: per image a rate
     U(0, ``max_rate``) of islands per 640 x 480 pixel, each falling in one working pixel and
     moving its depth by the share of it the island covers (an island of radius r covers
     1 + pi r^2 of the 640 x 480 pixels the working pixel averages) towards the depth its
     disparity offset gives. ``intrinsics``: the images' normalised camera (fx / W first),
-    else the envelope's nominal focal length. Draws a fixed number of values for a batch."""
+    else the envelope's nominal focal length. ``image_width``: the whole working image's width
+    when ``depth`` holds crops of it (``crops.crop_batch``), so that a working pixel stands for
+    as many 640 x 480 pixels in a crop as in the whole image; else ``depth``'s own width.
+    Draws a fixed number of values for a batch."""
     n, h, w = depth.shape
-    per_working_pixel = (REFERENCE_WIDTH / w) ** 2          # 640 x 480 pixels in one
+    per_working_pixel = (REFERENCE_WIDTH / (image_width or w)) ** 2   # 640 x 480 pixels in one
     rate = max_rate * torch.rand(n, generator=gen)
     seeds = torch.rand((n, h, w), generator=gen) < (rate * per_working_pixel)[:, None, None]
     radius = torch.randint(0, ISLAND_MAX_RADIUS_PX + 1, (n, h, w), generator=gen)

@@ -597,7 +597,7 @@ def training_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator, cfg: Tra
     ``cfg.augment``) or one crop of each (``crops.crop_batch``, with ``cfg.train_crop``)."""
     if cfg.train_crop is not None:
         return (*crop_batch(arrays, idx, cfg.train_crop, gen, aug_noise, norm, cfg.aug_holes,
-                            cfg.aug_roll_deg), None)
+                            cfg.aug_roll_deg, cfg.aug_islands), None)
     batch = gather_batch(arrays, idx, gen if cfg.augment else None, aug_noise, cfg.aug_holes,
                          cfg.aug_roll_deg, cfg.aug_islands)
     return (network_input(batch.depth, batch.valid, norm, batch.intrinsics,
