@@ -176,7 +176,26 @@ def test_islands_on_crops_move_depths_and_heights_and_keep_the_labels():
     moved = (x[:, 0] - plain[:, 0]).abs() > 1e-6
     assert 0 < int(moved.sum()) < 0.05 * moved.numel()
     assert not moved[plain[:, 1] == 0].any()                  # never where there is no depth
-    assert torch.equal((x[:, 2] - plain[:, 2]).abs() > 1e-6, moved)   # heights follow
+    height_moved = (x[:, 2] - plain[:, 2]).abs() > 1e-6        # heights follow, only there
+    assert not height_moved[~moved].any() and height_moved[moved].float().mean() > 0.9
+
+
+def test_islands_on_crops_are_drawn_at_the_whole_images_density_and_focal(monkeypatch):
+    import training.crops as crops
+
+    arrays = scene_arrays()
+    measure_planes(arrays, NORM)
+    seen = {}
+
+    def spy(depth, valid, intrinsics, max_rate, gen, image_width=None):
+        seen.update(shape=tuple(depth.shape), intrinsics=intrinsics, image_width=image_width)
+        return depth
+
+    monkeypatch.setattr(crops, "working_islands", spy)
+    crop_batch(arrays, np.array([2, 0]), (96, 72), torch.Generator().manual_seed(3), 0.0, NORM,
+               islands=1e-3)
+    assert seen["shape"] == (2, 72, 96) and seen["image_width"] == 160   # the cache's width
+    np.testing.assert_array_equal(seen["intrinsics"].numpy(), arrays["intrinsics"][[2, 0]])
 
 
 def test_the_roll_margins_hold_the_turned_crop():
