@@ -138,10 +138,9 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     of the crops losing depth in blobs (``holes.punch_holes``), outlier islands at up to
     ``islands`` per 640 x 480 pixel (``islands.working_islands``, scaled by the whole image's
     width; drawn last, after the mirror's draw, so 0 leaves the stream as it was), mirrored
-    half the time.
-    The heights come last, from the augmented depths (module docstring): an island moves
-    its pixel's height as a sensor's would. ``arrays`` must hold ``measure_planes``'
-    answers."""
+    half the time. The heights come last, from the augmented depths (module docstring): an
+    island moves its pixel's height as a sensor's would. ``arrays`` must hold
+    ``measure_planes``' answers."""
     idx = np.asarray(idx)
     n, (cw, ch) = len(idx), crop
     full_h, full_w = arrays["depth"].shape[1:]
