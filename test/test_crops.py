@@ -187,14 +187,16 @@ def test_islands_on_crops_are_drawn_at_the_whole_images_density_and_focal(monkey
     measure_planes(arrays, NORM)
     seen = {}
 
-    def spy(depth, valid, intrinsics, max_rate, gen, image_width=None):
-        seen.update(shape=tuple(depth.shape), intrinsics=intrinsics, image_width=image_width)
+    def spy(depth, valid, intrinsics, max_rate, gen, image_width=None, discs=False):
+        seen.update(shape=tuple(depth.shape), intrinsics=intrinsics, image_width=image_width,
+                    discs=discs)
         return depth
 
     monkeypatch.setattr(crops, "working_islands", spy)
     crop_batch(arrays, np.array([2, 0]), (96, 72), torch.Generator().manual_seed(3), 0.0, NORM,
-               islands=1e-3)
+               islands=1e-3, island_discs=True)
     assert seen["shape"] == (2, 72, 96) and seen["image_width"] == 160   # the cache's width
+    assert seen["discs"]
     np.testing.assert_array_equal(seen["intrinsics"].numpy(), arrays["intrinsics"][[2, 0]])
 
 

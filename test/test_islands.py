@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
 from training.config import ConfigError, TrainConfig
-from training.islands import add_islands, working_islands
+from training.islands import ISLAND_MAX_RADIUS_PX, add_islands, disc_kernels, working_islands
 
 pytestmark = pytest.mark.unit
 
@@ -58,6 +60,10 @@ def test_augment_without_islands_draws_as_before_and_with_them_keeps_the_labels(
     assert torch.equal(on.labels, plain.labels) and torch.equal(on.valid, plain.valid)
     differs = (on.depth - plain.depth).abs() > 1e-6
     assert 0 < int(differs.sum()) < 200
+    discs = augment(depth, valid, labels, torch.Generator().manual_seed(5), holes=0.5,
+                    islands=3e-4, island_discs=True)
+    assert torch.equal(discs.labels, plain.labels)
+    assert int(((discs.depth - plain.depth).abs() > 1e-6).sum()) >= int(differs.sum())
 
 
 def test_islands_on_a_crop_are_as_dense_as_on_the_whole_image() -> None:
@@ -83,3 +89,33 @@ def test_aug_islands_is_checked_and_taken_on_crops() -> None:
         TrainConfig(aug_islands=0.5).validate()
     with pytest.raises(ConfigError, match="aug_islands.*augment"):
         TrainConfig(aug_islands=3e-4, augment=False).validate()
+
+
+def test_disc_kernels_cover_each_islands_area_in_working_pixels() -> None:
+    for scale in (0.25, 0.5):
+        kernels = disc_kernels(scale)
+        areas = [(1.0 + math.pi * r * r) * scale ** 2 for r in range(ISLAND_MAX_RADIUS_PX + 1)]
+        np.testing.assert_allclose(kernels.sum((1, 2, 3)).numpy(), areas, rtol=0.06)
+        assert float(kernels.max()) <= 1.0
+
+
+def test_disc_islands_span_several_pixels_at_320_x_240_and_draw_as_one_pixel_islands() -> None:
+    depth = torch.full((16, 240, 320), 2.0)
+    valid = torch.ones_like(depth)
+    valid[:, :, :100] = 0
+
+    def islands(discs: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        gen = torch.Generator().manual_seed(7)
+        out = working_islands(depth, valid, None, 3e-4, gen, discs=discs)
+        return (out - depth).abs() > 1e-3, torch.rand(3, generator=gen)
+
+    (pixel, after_pixel), (disc, after_disc) = islands(False), islands(True)
+    assert torch.equal(after_pixel, after_disc)              # the same draws either way
+    assert not disc[:, :, :100].any()                        # never where there is no depth
+    assert 2.5 < disc.sum() / pixel.sum() < 8.0              # a median island covers ~5 pixels
+
+
+def test_aug_islands_discs_needs_islands() -> None:
+    TrainConfig(aug_islands=3e-4, aug_islands_discs=True).validate()
+    with pytest.raises(ConfigError, match="aug_islands_discs"):
+        TrainConfig(aug_islands_discs=True).validate()

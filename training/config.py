@@ -903,6 +903,10 @@ class TrainConfig:
     # per 640 x 480 pixel of small patches of wrong depth, as disparity sensors' wrong
     # matches, labels kept; on whole images and on train_crop's crops alike. 0 = off.
     aug_islands: float = 0.0
+    # Draw each of those islands as a disc of its own area in working pixels (several pixels
+    # at 320 x 240) instead of in one working pixel (islands.disc_kernels). Off = the islands
+    # of default model 0.17.0.
+    aug_islands_discs: bool = False
     # (w, h): train on one crop of this size per image, cut from the input_size cache, its
     # heights above the support plane fitted on the whole image (training/crops.py): a finer
     # input_size at the coarse size's cost per step; inference runs on the whole image.
@@ -1012,6 +1016,9 @@ class TrainConfig:
             raise ConfigError(f"{o}.aug_islands = {self.aug_islands} needs augment (the "
                               "islands are drawn by the augmentation): set augment or "
                               "aug_islands 0")
+        if self.aug_islands_discs and not self.aug_islands:
+            raise ConfigError(f"{o}.aug_islands_discs shapes the islands aug_islands draws: "
+                              "set aug_islands above 0 or aug_islands_discs off")
         _check_range(o, "aug_roll_deg", self.aug_roll_deg, 0.0, 45.0)
         if self.aug_roll_deg and not self.augment:
             raise ConfigError(f"{o}.aug_roll_deg = {self.aug_roll_deg} needs augment (the roll "

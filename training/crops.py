@@ -129,7 +129,8 @@ def cut(array: np.ndarray, rows, origins: np.ndarray, size: tuple[int, int], fil
 
 def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.Generator,
                noise_level: float, norm: dict, holes: float = 0.0, roll_deg: float = 0.0,
-               islands: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+               islands: float = 0.0, island_discs: bool = False
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """The network input (N, C, h, w) and labels (N, h, w) of one ``crop`` (w, h) of each
     cached image ``idx``, augmented as ``train.augment`` augments whole images: turned as by
     a camera rolled U(-``roll_deg``, ``roll_deg``) more (``roll.roll_images``, about the
@@ -137,10 +138,10 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     cache's working size (``redrawn_noise.noise_levels``), 0-3 % of pixels dropped, ``holes``
     of the crops losing depth in blobs (``holes.punch_holes``), outlier islands at up to
     ``islands`` per 640 x 480 pixel (``islands.working_islands``, scaled by the whole image's
-    width; drawn last, after the mirror's draw, so 0 leaves the stream as it was), mirrored
-    half the time. The heights come last, from the augmented depths (module docstring): an
-    island moves its pixel's height as a sensor's would. ``arrays`` must hold
-    ``measure_planes``' answers."""
+    width, as discs of their own size with ``island_discs``; drawn last, after the mirror's
+    draw, so 0 leaves the stream as it was), mirrored half the time. The heights come last,
+    from the augmented depths (module docstring): an island moves its pixel's height as a
+    sensor's would. ``arrays`` must hold ``measure_planes``' answers."""
     idx = np.asarray(idx)
     n, (cw, ch) = len(idx), crop
     full_h, full_w = arrays["depth"].shape[1:]
@@ -174,7 +175,8 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     if islands > 0:
         camera = (torch.from_numpy(np.asarray(arrays["intrinsics"][idx], np.float32))
                   if "intrinsics" in arrays else None)
-        depth = working_islands(depth, valid, camera, islands, gen, image_width=full_w)
+        depth = working_islands(depth, valid, camera, islands, gen, image_width=full_w,
+                                discs=island_discs)
     height = heights_along_rays(depth, valid > 1e-6, u, v, (full_w, full_h),
                                 torch.from_numpy(arrays[PLANE_NORMAL_KEY][idx]),
                                 torch.from_numpy(arrays[PLANE_OFFSET_KEY][idx]),
