@@ -172,15 +172,14 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
         valid, labels = punch_holes(valid, labels, holes, gen)
     # The mirror is drawn before the islands, so that they leave it as it was.
     flip = (torch.rand(n, generator=gen) < 0.5)[:, None, None]
+    camera = image_intrinsics(arrays, idx, norm)     # the islands' focal length and the heights'
     if islands > 0:
-        camera = (torch.from_numpy(np.asarray(arrays["intrinsics"][idx], np.float32))
-                  if "intrinsics" in arrays else None)
         depth = working_islands(depth, valid, camera, islands, gen, image_width=full_w,
                                 discs=island_discs)
     height = heights_along_rays(depth, valid > 1e-6, u, v, (full_w, full_h),
                                 torch.from_numpy(arrays[PLANE_NORMAL_KEY][idx]),
                                 torch.from_numpy(arrays[PLANE_OFFSET_KEY][idx]),
-                                image_intrinsics(arrays, idx, norm), norm["focal_over_width"])
+                                camera, norm["focal_over_width"])
     depth, valid, height, labels = (torch.where(flip, t.flip(-1), t)
                                     for t in (depth, valid, height, labels))
     return network_input(depth, valid, norm, height_m=height), labels
