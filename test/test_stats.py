@@ -10,7 +10,7 @@ import pytest
 
 from training.__main__ import main as training_main
 from training.compare import compare_reports, load_result
-from training.stats import exact_mcnemar_p, paired_comparison, wilson_interval
+from training.stats import exact_mcnemar_p, holm_adjusted, paired_comparison, wilson_interval
 
 pytestmark = pytest.mark.unit
 
@@ -52,6 +52,16 @@ def test_paired_comparison_splits_the_mistakes_by_model():
         paired_comparison(range(5), [], n=4)
 
 
+def test_holm_adjustment_matches_the_textbook_step_down():
+    # R: p.adjust(c(0.01, 0.04, 0.03, 0.005), "holm") -> 0.03 0.06 0.06 0.02 (input order; the
+    # third-smallest's 0.06 carries over to the largest, whose own 0.04 would undercut it).
+    assert holm_adjusted([0.01, 0.04, 0.03, 0.005]) == pytest.approx([0.03, 0.06, 0.06, 0.02])
+    assert holm_adjusted([0.049] * 22) == [1.0] * 22       # one point of a suite: not a finding
+    assert holm_adjusted([0.2]) == [0.2] and holm_adjusted([]) == []
+    with pytest.raises(ValueError, match="must lie in"):
+        holm_adjusted([0.5, 1.5])
+
+
 def _eval(data: str, mistakes: list[int], n: int = 300) -> dict:
     return {"data": data, "split": "val", "n_images": n, "mistakes": mistakes,
             "image_all_correct": 1 - len(mistakes) / n}
@@ -72,6 +82,10 @@ def test_compare_pairs_evaluations_and_robustness_points_on_the_same_images():
                            "robustness", _robustness([[4], [4]]))
     assert [r["set"] for r in rows] == ["as trained", "support_tilt_deg 3.0"]
     assert rows[0]["only_b_wrong"] == [4] and rows[1]["only_a_wrong"] == [5, 6]
+    # Over several points each row also carries its Holm-adjusted p-value.
+    assert [r["p_holm"] for r in rows] == pytest.approx(holm_adjusted([r["p_value"]
+                                                                       for r in rows]))
+    assert rows[1]["p_value"] == pytest.approx(0.5) and rows[1]["p_holm"] == 1.0  # 2 x 0.5
     # Results from before the suite kept its mistakes: rates and intervals, no paired test.
     old = compare_reports("robustness", _robustness(None), "robustness", _robustness([[], []]))
     assert all(r["p_value"] is None for r in old)
@@ -125,6 +139,7 @@ def test_training_compare_reads_result_folders(tmp_path, capsys):
     out = capsys.readouterr().out
     p = exact_mcnemar_p(5, 0)
     assert "only A wrong 5, only B wrong 0, both 1" in out and f"p = {p:.3g}" in out
+    assert "Holm" not in out                                # one set: nothing to adjust
     assert math.isclose(p, 2 / 32)
     (tmp_path / "empty").mkdir()
     assert training_main(["compare", str(tmp_path / "a"), str(tmp_path / "empty")]) == 2

@@ -4,7 +4,10 @@ A and B are two ``evaluate`` results (eval.json, or the folder holding it) on th
 and split, or two ``robustness`` results (robustness.json, or its folder) on the same data
 and scenes; two run folders whose manifests are identical hold the same data. For each set
 of images it prints both all-correct rates with their 95 % intervals, the images only one
-model got wrong, and the exact McNemar p-value (training/stats.py). Results written before
+model got wrong, and the exact McNemar p-value (training/stats.py); for a robustness result,
+also each point's Holm-adjusted p-value over all the points compared, the one a rule about
+"no point worse beyond chance" should name (one of 20-odd points tested alone falls under
+0.05 by chance alone about half the time). Results written before
 the suite recorded its mistakes per point can still be compared by rate, without the paired
 test.
 """
@@ -14,7 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from training.config import load_json
-from training.stats import paired_comparison, rate_with_interval
+from training.stats import holm_adjusted, paired_comparison, rate_with_interval
 
 RESULT_FILES = ("eval.json", "robustness.json")
 
@@ -94,6 +97,10 @@ def compare_reports(kind_a: str, a: dict, kind_b: str, b: dict) -> list[dict]:
                          **{side: rate_with_interval(r, n) for side, r in zip("ab", rights)}})
     if not rows:
         raise ValueError("the two robustness results share no stress point")
+    tested = [row for row in rows if row["p_value"] is not None]
+    if len(tested) > 1:
+        for row, adjusted in zip(tested, holm_adjusted(r["p_value"] for r in tested)):
+            row["p_holm"] = adjusted
     return rows
 
 
@@ -107,7 +114,8 @@ def format_row(row: dict) -> str:
         return text + "; mistakes not recorded per image, no paired test"
     return (text + f"; only A wrong {len(row['only_a_wrong'])}, only B wrong "
             f"{len(row['only_b_wrong'])}, both {row['both_wrong']}; McNemar p = "
-            f"{row['p_value']:.3g}")
+            f"{row['p_value']:.3g}"
+            + (f" (Holm over the points: {row['p_holm']:.3g})" if "p_holm" in row else ""))
 
 
 def run_compare(path_a: Path, path_b: Path) -> list[dict]:

@@ -9,7 +9,11 @@ tools make that visible where the figures are made:
   [0, 1] and behaves near 1.0, where our rates live (the normal approximation does not);
 - ``paired_comparison``: two models on the *same* images. Only the images on which they
   disagree carry information (McNemar); under "equally good" each of those is a fair coin,
-  so the two-sided exact binomial p-value says how surprising the split is.
+  so the two-sided exact binomial p-value says how surprising the split is;
+- ``holm_adjusted``: the same p-values made fit for a rule over many of them at once. A
+  robustness comparison tests 20-odd points; between two equally good models one of them
+  falls under 0.05 by chance alone about half the time, so a rule that asks "no point worse
+  beyond chance" should name the adjusted values.
 """
 
 from __future__ import annotations
@@ -45,6 +49,21 @@ def exact_mcnemar_p(only_a_wrong: int, only_b_wrong: int) -> float:
     k = min(only_a_wrong, only_b_wrong)
     tail = sum(math.comb(n, i) for i in range(k + 1)) / 2.0 ** n
     return min(1.0, 2.0 * tail)
+
+
+def holm_adjusted(p_values: Iterable[float]) -> list[float]:
+    """Holm's step-down adjustment, in the input's order: the k-th smallest of m p-values is
+    multiplied by m - k + 1 (k from 1), each kept at least as large as the one before it and
+    at most 1. Rejecting where the adjusted value is under alpha keeps the chance of any false
+    "beyond chance" in the family under alpha, without assuming the tests independent."""
+    p = list(p_values)
+    if any(not 0.0 <= v <= 1.0 for v in p):
+        raise ValueError(f"p-values must lie in [0, 1], got {p}")
+    m, adjusted, running = len(p), [0.0] * len(p), 0.0
+    for rank, index in enumerate(sorted(range(m), key=p.__getitem__)):
+        running = max(running, min(1.0, (m - rank) * p[index]))
+        adjusted[index] = running
+    return adjusted
 
 
 def rate_with_interval(right: int, n: int) -> dict:
