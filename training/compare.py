@@ -5,9 +5,9 @@ and split, or two ``robustness`` results (robustness.json, or its folder) on the
 and scenes; two run folders whose manifests are identical hold the same data. For each set
 of images it prints both all-correct rates with their 95 % intervals, the images only one
 model got wrong, and the exact McNemar p-value (training/stats.py); for a robustness result,
-also each point's Holm-adjusted p-value over all the points compared, the one a rule about
-"no point worse beyond chance" should name (one of 20-odd points tested alone falls under
-0.05 by chance alone about half the time). Results written before
+also each point's Holm-adjusted p-value over the points with a paired test, the one a rule
+about "no point worse beyond chance" should name (training/stats.py says why). Results
+written before
 the suite recorded its mistakes per point can still be compared by rate, without the paired
 test.
 """

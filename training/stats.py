@@ -11,9 +11,10 @@ tools make that visible where the figures are made:
   disagree carry information (McNemar); under "equally good" each of those is a fair coin,
   so the two-sided exact binomial p-value says how surprising the split is;
 - ``holm_adjusted``: the same p-values made fit for a rule over many of them at once. A
-  robustness comparison tests 20-odd points; between two equally good models one of them
-  falls under 0.05 by chance alone about half the time, so a rule that asks "no point worse
-  beyond chance" should name the adjusted values.
+  robustness comparison tests 20-odd points; between two equally good models, were the 22
+  tests independent and exactly at their level, at least one would come out worse at
+  p < 0.05 about 4 times in 10 (1 - 0.975^22), so a rule that asks "no point worse beyond
+  chance" should name the adjusted values.
 """
 
 from __future__ import annotations
