@@ -7,9 +7,8 @@ of images it prints both all-correct rates with their 95 % intervals, the images
 model got wrong, and the exact McNemar p-value (training/stats.py); for a robustness result,
 also each point's Holm-adjusted p-value over the points with a paired test, the one a rule
 about "no point worse beyond chance" should name (training/stats.py says why). Results
-written before
-the suite recorded its mistakes per point can still be compared by rate, without the paired
-test.
+written before the suite recorded its mistakes per point can still be compared by rate,
+without the paired test.
 """
 
 from __future__ import annotations
