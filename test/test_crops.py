@@ -200,6 +200,24 @@ def test_islands_on_crops_are_drawn_at_the_whole_images_density_and_focal(monkey
     np.testing.assert_array_equal(seen["intrinsics"].numpy(), arrays["intrinsics"][[2, 0]])
 
 
+def test_the_range_limit_band_on_crops_counts_readings_at_the_whole_images_size(monkeypatch):
+    import training.crops as crops
+
+    arrays = scene_arrays()
+    measure_planes(arrays, NORM)
+    seen = {}
+
+    def spy(depth, valid, level, share, gen, size=None):
+        seen.update(shape=tuple(depth.shape), share=share, size=size)
+        return depth, valid
+
+    monkeypatch.setattr(crops, "range_limit_band", spy)
+    x, labels = crop_batch(arrays, np.array([2, 0]), (96, 72), torch.Generator().manual_seed(3),
+                           1.0, NORM, range_limit=0.5)
+    assert seen == {"shape": (2, 72, 96), "share": 0.5, "size": (120, 160)}
+    assert x.shape[0] == 2 and labels.shape == (2, 72, 96)
+
+
 def test_the_roll_margins_hold_the_turned_crop():
     for crop, deg in (((160, 120), 15.0), ((96, 72), 45.0), ((64, 128), 5.0)):
         mx, my = roll_margins(crop, deg)

@@ -195,6 +195,10 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--aug-islands-discs", action=argparse.BooleanOptionalAction, default=None,
                    help="draw each outlier island as a disc of its own size in working pixels "
                         "(several at 320 x 240) instead of in one (default off)")
+    p.add_argument("--aug-range-limit", type=float, default=None,
+                   help="share of training images cut at a range limit drawn in their far "
+                        "depths, with the nearer-reading band their noise gives there, as a "
+                        "sensor leaves along its maximum range (e.g. 0.5; default 0 = off)")
     p.add_argument("--train-crop", type=int, nargs=2, metavar=("W", "H"), default=None,
                    help="train on one W x H crop per image of the --input-size cache, its "
                         "heights above the support plane fitted on the whole image: a finer "
@@ -262,6 +266,7 @@ def resolve_train_config(args: argparse.Namespace):
               "object_distance_weight": "object_distance_weight",
               "aug_noise": "aug_noise", "aug_holes": "aug_holes", "aug_islands": "aug_islands",
               "aug_islands_discs": "aug_islands_discs",
+              "aug_range_limit": "aug_range_limit",
               "aug_roll_deg": "aug_roll_deg",
               "lovasz_weight": "lovasz_weight",
               "object_balance_pixels": "object_balance_pixels",

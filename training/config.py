@@ -907,6 +907,11 @@ class TrainConfig:
     # at 320 x 240) instead of in one working pixel (islands.disc_kernels). Off = the islands
     # of default model 0.17.0.
     aug_islands_discs: bool = False
+    # Share of training images cut at a range limit drawn in their far depths, with the
+    # truncation their noise (the sensor's and the re-drawn) gives: the band of nearer-reading
+    # pixels a sensor leaves along its maximum range (training/range_limit.py); on whole images
+    # and on train_crop's crops alike. 0 = off.
+    aug_range_limit: float = 0.0
     # (w, h): train on one crop of this size per image, cut from the input_size cache, its
     # heights above the support plane fitted on the whole image (training/crops.py): a finer
     # input_size at the coarse size's cost per step; inference runs on the whole image.
@@ -1019,6 +1024,14 @@ class TrainConfig:
         if self.aug_islands_discs and not self.aug_islands:
             raise ConfigError(f"{o}.aug_islands_discs shapes the islands aug_islands draws: "
                               "set aug_islands above 0 or aug_islands_discs off")
+        _check_range(o, "aug_range_limit", self.aug_range_limit, 0.0, 1.0)
+        if self.aug_range_limit and not self.augment:
+            raise ConfigError(f"{o}.aug_range_limit = {self.aug_range_limit} needs augment (the "
+                              "limit is drawn by the augmentation): set augment or "
+                              "aug_range_limit 0")
+        if self.aug_range_limit and self.nearest_height:
+            raise ConfigError(f"{o}.aug_range_limit is not carried to the near-side depths of "
+                              "nearest_height yet: turn one of them off")
         _check_range(o, "aug_roll_deg", self.aug_roll_deg, 0.0, 45.0)
         if self.aug_roll_deg and not self.augment:
             raise ConfigError(f"{o}.aug_roll_deg = {self.aug_roll_deg} needs augment (the roll "

@@ -28,6 +28,7 @@ from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE
 from task_outcome_ros.model import INTRINSICS_FROM_CAMERA_INFO, network_input
 from training.holes import punch_holes
 from training.islands import working_islands
+from training.range_limit import range_limit_band
 from training.redrawn_noise import axial_noise, drop_pixels, noise_levels
 from training.roll import draw_roll, roll_images, roll_sources
 
@@ -129,7 +130,7 @@ def cut(array: np.ndarray, rows, origins: np.ndarray, size: tuple[int, int], fil
 
 def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.Generator,
                noise_level: float, norm: dict, holes: float = 0.0, roll_deg: float = 0.0,
-               islands: float = 0.0, island_discs: bool = False
+               islands: float = 0.0, island_discs: bool = False, range_limit: float = 0.0
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """The network input (N, C, h, w) and labels (N, h, w) of one ``crop`` (w, h) of each
     cached image ``idx``, augmented as ``train.augment`` augments whole images: turned as by
@@ -141,7 +142,9 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     width, as discs of their own size with ``island_discs``; drawn last, after the mirror's
     draw, so 0 leaves the stream as it was), mirrored half the time. The heights come last,
     from the augmented depths (module docstring): an island moves its pixel's height as a
-    sensor's would. ``arrays`` must hold ``measure_planes``' answers."""
+    sensor's would. ``range_limit``: that share of the crops cut at a range limit with the
+    truncation their noise gives (``range_limit.range_limit_band``), drawn after the islands.
+    ``arrays`` must hold ``measure_planes``' answers."""
     idx = np.asarray(idx)
     n, (cw, ch) = len(idx), crop
     full_h, full_w = arrays["depth"].shape[1:]
@@ -176,6 +179,8 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     if islands > 0:
         depth = working_islands(depth, valid, camera, islands, gen, image_width=full_w,
                                 discs=island_discs)
+    if range_limit > 0:
+        depth, valid = range_limit_band(depth, valid, level, range_limit, gen, (full_h, full_w))
     height = heights_along_rays(depth, valid > 1e-6, u, v, (full_w, full_h),
                                 torch.from_numpy(arrays[PLANE_NORMAL_KEY][idx]),
                                 torch.from_numpy(arrays[PLANE_OFFSET_KEY][idx]),

@@ -80,6 +80,7 @@ from training.overlaps import (
     frames_with_touching_objects,
     object_distance_cache,
 )
+from training.range_limit import range_limit_band
 from training.redrawn_noise import axial_noise, drop_pixels, noise_levels
 from training.roll import draw_roll, measure_images, roll_images
 from training.size_recall import SMALL_OUTCOME_PIXELS
@@ -148,7 +149,7 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
             holes: float = 0.0, roll_deg: float = 0.0,
             roll_measured: tuple[torch.Tensor, torch.Tensor] | None = None,
             object_distance: torch.Tensor | None = None, islands: float = 0.0,
-            island_discs: bool = False) -> Batch:
+            island_discs: bool = False, range_limit: float = 0.0) -> Batch:
     """Batch augmentation that keeps labels honest. depth/valid float (N,h,w), labels long.
 
     ``noise_level`` (``TrainConfig.aug_noise``): each image gets re-drawn axial noise of
@@ -181,7 +182,12 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     ``islands`` (``TrainConfig.aug_islands``): outlier islands of wrong depth at up to this
     rate per 640 x 480 pixel (``islands.working_islands``; as discs of their own size with
     ``island_discs``), labels kept; drawn after everything else, so 0 leaves the stream as
-    it was."""
+    it was.
+
+    ``range_limit`` (``TrainConfig.aug_range_limit``): that share of the images cut at a
+    range limit in their far depths with the truncation their noise gives
+    (``range_limit.range_limit_band``), labels kept; drawn after the islands, so 0 leaves
+    the stream as it was."""
     n = depth.shape[0]
     if roll_deg > 0:  # first, so that its interpolation does not smooth the noise drawn below
         depth, valid, labels, nearest = roll_images(draw_roll(n, roll_deg, gen), intrinsics,
@@ -240,6 +246,8 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
         valid, labels = punch_holes(valid, labels, holes, gen)
     if islands > 0:
         depth = working_islands(depth, valid, intrinsics, islands, gen, discs=island_discs)
+    if range_limit > 0:
+        depth, valid = range_limit_band(depth, valid, level, range_limit, gen)
     return Batch(depth, valid, labels, intrinsics, nearest, object_distance)
 
 
@@ -323,7 +331,8 @@ def autocast_factory(precision: str, device_type: str):
 
 def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
                  noise_level: float = 1.0, holes: float = 0.0, roll_deg: float = 0.0,
-                 islands: float = 0.0, island_discs: bool = False) -> Batch:
+                 islands: float = 0.0, island_discs: bool = False,
+                 range_limit: float = 0.0) -> Batch:
     """The cached images ``idx`` as a ``Batch``, augmented unless ``gen`` is None (the
     training loop's data step; bench/train_step.py times this very function). intrinsics and
     nearest are None unless ``arrays`` holds them (``TrainConfig.camera_intrinsics``,
@@ -340,7 +349,8 @@ def gather_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator | None,
                     if roll_deg > 0 and ROLL_NOISE in arrays and ROLL_EDGES in arrays
                     else None)
         batch = augment(*batch[:3], gen, noise_level, batch.intrinsics, batch.nearest, holes,
-                        roll_deg, measured, batch.object_distance, islands, island_discs)
+                        roll_deg, measured, batch.object_distance, islands, island_discs,
+                        range_limit)
     return batch
 
 
@@ -599,9 +609,11 @@ def training_batch(arrays: dict, idx: np.ndarray, gen: torch.Generator, cfg: Tra
     ``cfg.augment``) or one crop of each (``crops.crop_batch``, with ``cfg.train_crop``)."""
     if cfg.train_crop is not None:
         return (*crop_batch(arrays, idx, cfg.train_crop, gen, aug_noise, norm, cfg.aug_holes,
-                            cfg.aug_roll_deg, cfg.aug_islands, cfg.aug_islands_discs), None)
+                            cfg.aug_roll_deg, cfg.aug_islands, cfg.aug_islands_discs,
+                            cfg.aug_range_limit), None)
     batch = gather_batch(arrays, idx, gen if cfg.augment else None, aug_noise, cfg.aug_holes,
-                         cfg.aug_roll_deg, cfg.aug_islands, cfg.aug_islands_discs)
+                         cfg.aug_roll_deg, cfg.aug_islands, cfg.aug_islands_discs,
+                         cfg.aug_range_limit)
     return (network_input(batch.depth, batch.valid, norm, batch.intrinsics,
                           nearest=batch.nearest), batch.labels, batch.object_distance)
 
@@ -627,7 +639,8 @@ ADDED_TRAIN_FIELDS = {**LATER_NETWORK_OPTIONS, "object_balance_pixels": 0,
                       "relief_window_px": 0, "relief_smoothing_px": 0, "relief_base_px": 0,
                       "relief_noise_sds": 0.0, "nearest_height": False,
                       "relief_beneath_support": False, "aug_holes": 0.0, "aug_islands": 0.0,
-                      "aug_islands_discs": False, "aug_roll_deg": 0.0, "train_crop": None}
+                      "aug_islands_discs": False, "aug_range_limit": 0.0, "aug_roll_deg": 0.0,
+                      "train_crop": None}
 
 
 def _field_differences(old: dict, new: dict, prefix: str = "",
