@@ -1,4 +1,5 @@
-"""A scene the sensor-model tests share (test_tof.py, test_stereo.py)."""
+"""What the sensor-model and augmentation tests share (test_tof.py, test_stereo.py,
+test_islands.py, test_range_limit.py)."""
 
 from __future__ import annotations
 
@@ -15,3 +16,22 @@ def step_scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     depth[:, 60:100] = 1.7
     labels[:, 60:100] = 2
     return depth, labels, np.ones((H, W), np.float32)
+
+
+AUGMENT_SEED = 6
+
+
+def augment_with_and_without(depth, valid, labels, **option):
+    """``train.augment`` (holes 0.5, one seed) three ways: without ``option``, with it at
+    its off value 0, and with it on: (plain, off, on) batches. An augmentation drawn last
+    must leave the first two equal and, labels-honest, the labels of all three."""
+    import torch
+
+    from training.train import augment
+
+    (name, value), = option.items()
+
+    def run(**extra):
+        return augment(depth, valid, labels, torch.Generator().manual_seed(AUGMENT_SEED),
+                       holes=0.5, **extra)
+    return run(), run(**{name: 0.0}), run(**{name: value})

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from sensor_helpers import AUGMENT_SEED, augment_with_and_without
 
 from training.config import ConfigError, TrainConfig
 from training.islands import ISLAND_MAX_RADIUS_PX, add_islands, disc_kernels, working_islands
@@ -51,17 +52,13 @@ def test_augment_without_islands_draws_as_before_and_with_them_keeps_the_labels(
     depth = 1.5 + 0.1 * torch.rand(2, 120, 160, generator=torch.Generator().manual_seed(3))
     valid = torch.ones_like(depth)
     labels = torch.randint(0, 5, (2, 120, 160), generator=torch.Generator().manual_seed(4))
-    plain = augment(depth, valid, labels, torch.Generator().manual_seed(5), holes=0.5)
-    off = augment(depth, valid, labels, torch.Generator().manual_seed(5), holes=0.5,
-                  islands=0.0)
-    on = augment(depth, valid, labels, torch.Generator().manual_seed(5), holes=0.5,
-                 islands=3e-4)
+    plain, off, on = augment_with_and_without(depth, valid, labels, islands=3e-4)
     assert torch.equal(plain.depth, off.depth) and torch.equal(plain.labels, off.labels)
     assert torch.equal(on.labels, plain.labels) and torch.equal(on.valid, plain.valid)
     differs = (on.depth - plain.depth).abs() > 1e-6
     assert 0 < int(differs.sum()) < 200
-    discs = augment(depth, valid, labels, torch.Generator().manual_seed(5), holes=0.5,
-                    islands=3e-4, island_discs=True)
+    discs = augment(depth, valid, labels, torch.Generator().manual_seed(AUGMENT_SEED),
+                    holes=0.5, islands=3e-4, island_discs=True)
     assert torch.equal(discs.labels, plain.labels)
     assert int(((discs.depth - plain.depth).abs() > 1e-6).sum()) >= int(differs.sum())
 

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from sensor_helpers import augment_with_and_without
 
 from training.config import ConfigError, TrainConfig
 from training.range_limit import draw_limits, range_limit_band, truncate_at_limit
@@ -82,17 +83,11 @@ def test_more_noise_makes_a_nearer_band() -> None:
 
 
 def test_augment_with_the_band_keeps_labels_and_without_it_draws_as_before() -> None:
-    from training.train import augment
-
     rows = torch.linspace(2.5, 4.5, 120)[:, None].expand(120, 160)
     depth = rows.expand(4, 120, 160).clone()
-    valid = torch.ones_like(depth)
     labels = torch.randint(0, 5, (4, 120, 160), generator=torch.Generator().manual_seed(5))
-    plain = augment(depth, valid, labels, torch.Generator().manual_seed(6), holes=0.5)
-    off = augment(depth, valid, labels, torch.Generator().manual_seed(6), holes=0.5,
-                  range_limit=0.0)
-    on = augment(depth, valid, labels, torch.Generator().manual_seed(6), holes=0.5,
-                 range_limit=1.0)
+    plain, off, on = augment_with_and_without(depth, torch.ones_like(depth), labels,
+                                              range_limit=1.0)
     assert torch.equal(plain.depth, off.depth) and torch.equal(plain.valid, off.valid)
     assert torch.equal(on.labels, plain.labels)
     assert (on.valid < plain.valid).any()                 # far readings lost
