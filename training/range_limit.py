@@ -20,6 +20,15 @@ Check: frame 4458 of the default validation split rendered at 1x, cut here at it
 (4.00 m) with its own far-floor noise doubled (0.0060 z^2), reads 96 / 74 / 48 / 54 / 38 mm
 nearer in its first five working rows (valid 0.25-0.69); rendered at the suite's 2x noise
 it reads 118 / 84 / 57 / 53 / 37 mm nearer (valid 0.31-0.69).
+
+Where it is rougher than the sensor (as measured in the default run of 2026-12-07; a change
+here changes that recipe): the survivors' spread is drawn on top of the noise the working
+pixel already carries, so within ``UNTOUCHED_SDS`` of the limit a pixel gets up to s / sqrt(k)
+more noise than the sensor would give it (about 1.5x the sd inside the band) and the noise
+steps at ``UNTOUCHED_SDS``; there the valid fraction is also rounded to whole readings. The
+limit is drawn from the image's own depths with no floor at the spec's range, so on scenes
+whose far depths lie well inside it (the tote's, or crops of a scene's near part) it cuts
+where no sensor of the spec would: meant for scenes whose far floor reaches the range.
 """
 
 from __future__ import annotations
