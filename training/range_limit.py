@@ -56,6 +56,13 @@ FAR_NOISE_PER_Z2 = (0.001, 0.0065)
 UNTOUCHED_SDS = 6.0
 
 
+def readings_per_pixel(depth: torch.Tensor, size: tuple[int, int] | None) -> float:
+    """How many 640 x 480 readings a working pixel of ``depth`` (N, h, w) averages; ``size``
+    (h, w) is the whole image's working size when ``depth`` holds crops of it."""
+    h, w = size if size is not None else depth.shape[1:]
+    return REFERENCE_PIXELS / (h * w)
+
+
 def draw_limits(depth: torch.Tensor, valid: torch.Tensor, share: float,
                 gen: torch.Generator) -> torch.Tensor:
     """(N, 1, 1) a range limit per image (metres), inf for the images left alone: ``share``
@@ -84,8 +91,7 @@ def truncate_at_limit(depth: torch.Tensor, valid: torch.Tensor, limits: torch.Te
     ``size`` (h, w): the whole image's working size when these are crops of it (how many
     readings a working pixel averages). Only the pixels within ``UNTOUCHED_SDS`` of their
     limit change, and only they draw (one binomial and one normal each)."""
-    h, w = size if size is not None else depth.shape[1:]
-    readings = REFERENCE_PIXELS / (h * w)
+    readings = readings_per_pixel(depth, size)
     sd_all = (noise_per_z2 * depth ** 2).clamp_min(1e-6)
     near_limit = (valid > 0) & (limits - depth < UNTOUCHED_SDS * sd_all)
     z, sd = depth[near_limit], sd_all[near_limit]
@@ -113,8 +119,7 @@ def range_limit_band(depth: torch.Tensor, valid: torch.Tensor, level: torch.Tens
     ``redrawn_noise.noise_levels``) grows the image's noise: x sqrt(1 + u^2), u the re-drawn
     noise over the sensor's own."""
     n = depth.shape[0]
-    h, w = size if size is not None else depth.shape[1:]
-    redrawn = level * math.sqrt(REFERENCE_PIXELS / (h * w)) / SENSOR_NOISE_PER_Z2
+    redrawn = level * math.sqrt(readings_per_pixel(depth, size)) / SENSOR_NOISE_PER_Z2
     low, high = FAR_NOISE_PER_Z2
     far = low + (high - low) * torch.rand(n, 1, 1, generator=gen)
     limits = draw_limits(depth, valid, share, gen)
