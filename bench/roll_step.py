@@ -1,12 +1,12 @@
 """Benchmark the training loop's data step with the camera-roll augmentation: what the turn
 costs a batch, and what measuring each cached image's noise and depth edges once
-(``train.measure_for_roll``) saves against measuring them in every batch.
+(``augment.measure_for_roll``) saves against measuring them in every batch.
 
     python bench/roll_step.py                       # 3 configurations x 60 batches (seconds)
     python bench/roll_step.py --run runs/tote --batches 120
     python bench/roll_step.py --quick               # a smoke run
 
-A data step is ``train.gather_batch`` on a batch of 32 at 160 x 120 (the ``TrainConfig``
+A data step is ``augment.gather_batch`` on a batch of 32 at 160 x 120 (the ``TrainConfig``
 defaults) at the training loop's thread count: gather, then augment (roll 15 degrees as
 ``--aug-roll 15`` does, mirror, shift, distance change, re-drawn noise). The configurations
 (no roll; roll measuring in the batch; roll with the images measured once) run interleaved
@@ -60,8 +60,8 @@ def main() -> None:
 
     import torch
 
+    from training.augment import Augmentations, gather_batch, measure_for_roll
     from training.config import TrainConfig
-    from training.train import gather_batch, measure_for_roll
 
     cfg = TrainConfig()
     torch.set_num_threads(cfg.threads)
@@ -79,7 +79,8 @@ def main() -> None:
         idx = np.sort(torch.randint(0, n, (cfg.batch_size,), generator=gen).numpy())
         for name, (arrays, roll_deg) in configs.items():
             t0 = time.perf_counter()
-            gather_batch(arrays, idx, torch.Generator().manual_seed(b), roll_deg=roll_deg)
+            gather_batch(arrays, idx, torch.Generator().manual_seed(b),
+                         Augmentations(roll_deg=roll_deg))
             if b >= 2:
                 timings[name].append((time.perf_counter() - t0) * 1e3)
     medians = {name: float(np.median(t)) for name, t in timings.items()}

@@ -84,13 +84,12 @@ def main() -> None:
 
     from task_outcome_ros.inference import resolve_model_path
     from task_outcome_ros.model import DEFAULT_NORMALISATION, build_model, network_input
+    from training.augment import Augmentations, gather_batch, measure_for_roll
     from training.config import TrainConfig
     from training.train import (
         WeightAverage,
         autocast_factory,
         class_weights,
-        gather_batch,
-        measure_for_roll,
         optimise_step,
     )
 
@@ -118,14 +117,17 @@ def main() -> None:
                                                 WeightAverage(net, cfg.ema_decay))
     timings = {c: {"data": [], "network_input": [], "step": [], "average": [], "total": []}
                for c in configs}
+    # The noise, holes and roll the section's "augment" records (the islands and the range
+    # limit's band are not timed here).
+    timed_augmentations = Augmentations(noise_level=cfg.aug_noise, holes=cfg.aug_holes,
+                                        roll_deg=cfg.aug_roll_deg)
     gen = torch.Generator().manual_seed(0)
 
     def one_step(config) -> None:
         net, optim, average = nets[config]
         t0 = time.perf_counter()
         idx = np.sort(torch.randint(0, n, (cfg.batch_size,), generator=gen).numpy())
-        depth, valid, labels = gather_batch(arrays, idx, gen, cfg.aug_noise, cfg.aug_holes,
-                                            cfg.aug_roll_deg)[:3]
+        depth, valid, labels = gather_batch(arrays, idx, gen, timed_augmentations)[:3]
         t1 = time.perf_counter()
         x = network_input(depth, valid, norm)
         if config[1]:

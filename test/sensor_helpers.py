@@ -22,12 +22,12 @@ AUGMENT_SEED = 6
 
 
 def augment_with_and_without(depth, valid, labels, **option):
-    """``train.augment`` (holes 0.5, one seed) three ways: without ``option``, with it at
+    """``augment.augment`` (holes 0.5, one seed) three ways: without ``option``, with it at
     its off value 0, and with it on: (plain, off, on) batches. An augmentation drawn last
     must leave the first two equal and, labels-honest, the labels of all three."""
     import torch
 
-    from training.train import augment
+    from training.augment import augment
 
     (name, value), = option.items()
 

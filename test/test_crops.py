@@ -18,6 +18,7 @@ from task_outcome_ros.model import (
     check_normalisation,
     network_input,
 )
+from training.augment import Augmentations
 from training.config import ConfigError, TrainConfig
 from training.crops import (
     PLANE_NORMAL_KEY,
@@ -35,6 +36,8 @@ from training.roll import roll_sources
 pytestmark = pytest.mark.unit
 
 NORM = check_normalisation({**DEFAULT_NORMALISATION, "intrinsics": INTRINSICS_FROM_CAMERA_INFO})
+QUIET = Augmentations(noise_level=0.0)          # no re-drawn noise: the crops are comparable
+HOLED = Augmentations(noise_level=0.0, holes=0.5)
 
 
 def scene_arrays(n: int = 3) -> dict:
@@ -129,7 +132,7 @@ def test_a_crop_batch_is_the_whole_images_input_cut_out_and_mirrored():
     gen = torch.Generator().manual_seed(5)
     same_draws = torch.Generator().set_state(gen.get_state())
     origins = crop_origins(arrays["labels"], (96, 72), same_draws)
-    x, got_labels = crop_batch(arrays, np.arange(3), (96, 72), gen, 0.0, NORM)
+    x, got_labels = crop_batch(arrays, np.arange(3), (96, 72), gen, NORM, QUIET)
     assert x.shape == (3, 3, 72, 96) and got_labels.shape == (3, 72, 96)
     for i, (cx, cy) in enumerate(origins):
         cut = whole[i, :, cy:cy + 72, cx:cx + 96]
@@ -147,9 +150,10 @@ def test_a_turned_crop_keeps_its_heights_and_labels_on_the_box():
     arrays = scene_arrays()
     measure_planes(arrays, NORM)
     gen = torch.Generator().manual_seed(2)
-    plain, plain_labels = crop_batch(arrays, np.arange(3), (96, 72), gen, 0.0, NORM)
+    plain, plain_labels = crop_batch(arrays, np.arange(3), (96, 72), gen, NORM, QUIET)
     gen = torch.Generator().manual_seed(2)
-    x, labels = crop_batch(arrays, np.arange(3), (96, 72), gen, 0.0, NORM, roll_deg=20.0)
+    x, labels = crop_batch(arrays, np.arange(3), (96, 72), gen, NORM,
+                           dataclasses.replace(QUIET, roll_deg=20.0))
     for mirrored in (plain_labels, plain_labels.flip(-1)):   # the mirror is drawn after it
         turned = (labels != mirrored) & (labels != IGNORE) & (mirrored != IGNORE)
         assert turned.float().mean() > 0.01                # it did turn
@@ -165,13 +169,13 @@ def test_islands_on_crops_move_depths_and_heights_and_keep_the_labels():
     arrays = scene_arrays()
     measure_planes(arrays, NORM)
     plain, plain_labels = crop_batch(arrays, np.arange(3), (96, 72),
-                                     torch.Generator().manual_seed(3), 0.0, NORM, holes=0.5)
+                                     torch.Generator().manual_seed(3), NORM, HOLED)
     off, off_labels = crop_batch(arrays, np.arange(3), (96, 72),
-                                 torch.Generator().manual_seed(3), 0.0, NORM, holes=0.5,
-                                 islands=0.0)
+                                 torch.Generator().manual_seed(3), NORM,
+                                 dataclasses.replace(HOLED, islands=0.0))
     assert torch.equal(off, plain) and torch.equal(off_labels, plain_labels)  # 0: as before
     x, labels = crop_batch(arrays, np.arange(3), (96, 72), torch.Generator().manual_seed(3),
-                           0.0, NORM, holes=0.5, islands=1e-3)
+                           NORM, dataclasses.replace(HOLED, islands=1e-3))
     assert torch.equal(labels, plain_labels) and torch.equal(x[:, 1], plain[:, 1])
     moved = (x[:, 0] - plain[:, 0]).abs() > 1e-6
     assert 0 < int(moved.sum()) < 0.05 * moved.numel()
@@ -193,8 +197,8 @@ def test_islands_on_crops_are_drawn_at_the_whole_images_density_and_focal(monkey
         return depth
 
     monkeypatch.setattr(crops, "working_islands", spy)
-    crop_batch(arrays, np.array([2, 0]), (96, 72), torch.Generator().manual_seed(3), 0.0, NORM,
-               islands=1e-3, island_discs=True)
+    crop_batch(arrays, np.array([2, 0]), (96, 72), torch.Generator().manual_seed(3), NORM,
+               dataclasses.replace(QUIET, islands=1e-3, island_discs=True))
     assert seen["shape"] == (2, 72, 96) and seen["image_width"] == 160   # the cache's width
     assert seen["discs"]
     np.testing.assert_array_equal(seen["intrinsics"].numpy(), arrays["intrinsics"][[2, 0]])
@@ -213,7 +217,7 @@ def test_the_range_limit_band_on_crops_counts_readings_at_the_whole_images_size(
 
     monkeypatch.setattr(crops, "range_limit_band", spy)
     x, labels = crop_batch(arrays, np.array([2, 0]), (96, 72), torch.Generator().manual_seed(3),
-                           1.0, NORM, range_limit=0.5)
+                           NORM, Augmentations(range_limit=0.5))
     assert seen == {"shape": (2, 72, 96), "share": 0.5, "size": (120, 160)}
     assert x.shape[0] == 2 and labels.shape == (2, 72, 96)
 

@@ -47,7 +47,7 @@ def test_training_islands_change_a_few_valid_working_pixels_and_draw_a_fixed_amo
 
 
 def test_augment_without_islands_draws_as_before_and_with_them_keeps_the_labels() -> None:
-    from training.train import augment
+    from training.augment import augment
 
     depth = 1.5 + 0.1 * torch.rand(2, 120, 160, generator=torch.Generator().manual_seed(3))
     valid = torch.ones_like(depth)

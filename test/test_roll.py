@@ -176,7 +176,7 @@ def test_the_turn_puts_back_the_noise_its_interpolation_averages_away():
 
 
 def test_augmentation_roll_turns_the_images_first_and_zero_leaves_the_stream_as_it_was():
-    from training.train import augment
+    from training.augment import augment
 
     depth = torch.rand(8, 60, 80) + 1.0
     labels = torch.randint(0, 4, (8, 60, 80))
@@ -207,11 +207,17 @@ def test_roll_augmentation_is_refused_out_of_range_or_without_augmentation():
 
 
 def test_the_training_loop_measuring_its_images_once_turns_them_the_same(monkeypatch):
-    """``train.measure_for_roll`` caches each image's noise and edges; the turned batch is
+    """``augment.measure_for_roll`` caches each image's noise and edges; the turned batch is
     bitwise what measuring them in the batch gives (the same random draws included), and
     with the cache the batch measures nothing."""
     import training.roll
-    from training.train import ROLL_EDGES, cached_edges, gather_batch, measure_for_roll
+    from training.augment import (
+        ROLL_EDGES,
+        Augmentations,
+        cached_edges,
+        gather_batch,
+        measure_for_roll,
+    )
 
     depth, labels, camera = rendered(0.0)
     rng = np.random.default_rng(0)
@@ -223,7 +229,8 @@ def test_the_training_loop_measuring_its_images_once_turns_them_the_same(monkeyp
               "nearest": (0.97 * noisy).astype(np.float16),
               "intrinsics": np.repeat(camera.normalised()[None], 6, 0).astype(np.float32)}
     idx = np.array([1, 3, 4])
-    turned = gather_batch(arrays, idx, torch.Generator().manual_seed(7), roll_deg=15.0)
+    turned = gather_batch(arrays, idx, torch.Generator().manual_seed(7),
+                          Augmentations(roll_deg=15.0))
     measure_for_roll(arrays, chunk=4)                # chunks that split the batch's images
     assert arrays[ROLL_EDGES].shape == (6, 120, 20)   # 8 pixels a byte
     _, edges = training.roll.measure_images(torch.from_numpy(noisy[idx].astype(np.float16)
@@ -236,7 +243,8 @@ def test_the_training_loop_measuring_its_images_once_turns_them_the_same(monkeyp
         raise AssertionError("the batch measured its images again")
 
     monkeypatch.setattr(training.roll, "measure_images", measured_again)
-    cached = gather_batch(arrays, idx, torch.Generator().manual_seed(7), roll_deg=15.0)
+    cached = gather_batch(arrays, idx, torch.Generator().manual_seed(7),
+                          Augmentations(roll_deg=15.0))
     for got, want in zip(cached, turned):
         assert (got is None and want is None) or torch.equal(got, want)
 
@@ -244,7 +252,7 @@ def test_the_training_loop_measuring_its_images_once_turns_them_the_same(monkeyp
 def test_cached_edges_come_back_as_measured_for_any_image_width():
     """The packed edges unpack to the same bool images, also when the width is not a whole
     number of bytes (13 pixels: 2 bytes a row, 3 bits of padding)."""
-    from training.train import ROLL_EDGES, cached_edges
+    from training.augment import ROLL_EDGES, cached_edges
 
     edges = np.random.default_rng(3).random((4, 5, 13)) < 0.3
     arrays = {"depth": np.zeros(edges.shape, np.float16),

@@ -155,8 +155,8 @@ def test_epoch_order_is_a_permutation_or_draws_in_proportion_to_the_weights():
 
 
 def test_augmentation_keeps_labels_and_redraws_noise_at_the_sensors_level():
+    from training.augment import augment
     from training.redrawn_noise import SENSOR_NOISE_PER_Z2
-    from training.train import augment
 
     gen = torch.Generator().manual_seed(0)
     depth = torch.full((64, 120, 160), 2.0)
@@ -174,7 +174,7 @@ def test_augmentation_keeps_labels_and_redraws_noise_at_the_sensors_level():
 
 
 def test_augmentation_moves_the_nearest_depths_with_the_image_and_leaves_the_rest_alone():
-    from training.train import augment
+    from training.augment import augment
 
     depth = torch.rand(6, 30, 40) + 1.0
     labels = torch.randint(0, 4, (6, 30, 40))
@@ -193,7 +193,7 @@ def test_augmentation_moves_the_nearest_depths_with_the_image_and_leaves_the_res
 
 
 def test_augmentation_noise_level_zero_adds_no_noise():
-    from training.train import augment
+    from training.augment import augment
 
     depth = torch.full((8, 120, 160), 2.0)
     out = augment(depth.clone(), torch.ones_like(depth), torch.zeros_like(depth).long(),
@@ -205,8 +205,8 @@ def test_augmentation_noise_level_zero_adds_no_noise():
 
 
 def test_augmentation_holes_take_depth_and_labels_from_large_regions_and_nothing_else():
+    from training.augment import augment
     from training.holes import HOLE_MAX_SHARE
-    from training.train import augment
 
     depth = torch.rand(32, 120, 160) + 1.0
     labels = torch.randint(0, 4, (32, 120, 160))
@@ -249,7 +249,7 @@ def test_augmentation_moves_the_intrinsics_with_the_image():
 
     from task_outcome_ros.camera import Intrinsics
     from task_outcome_ros.floor import height_above_floor
-    from training.train import augment
+    from training.augment import augment
 
     # An off-centre camera at the envelope's longest focal length, at the working size; the
     # box top at the rim height. Mirrors and shifts must keep every height right.
@@ -447,7 +447,7 @@ def test_object_distance_dips_to_one_along_the_seam_of_two_touching_objects(smal
 def test_augmentation_moves_the_object_distances_with_the_labels():
     """Mirror and shift move the auxiliary target as they move the labels: after augmenting,
     it is non-zero exactly on the object's labelled pixels; the noise draws do not change."""
-    from training.train import augment
+    from training.augment import augment
 
     labels = torch.zeros((16, 40, 60), dtype=torch.long)
     labels[:, 10:25, 5:20] = SUCCESS                      # off-centre: a mirror moves it

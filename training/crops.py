@@ -26,6 +26,7 @@ import torch
 from task_outcome_ros.floor import backproject, pixel_rays, support_plane
 from task_outcome_ros.labels import FIRST_OUTCOME_ID, IGNORE
 from task_outcome_ros.model import INTRINSICS_FROM_CAMERA_INFO, network_input
+from training.augment import Augmentations
 from training.holes import punch_holes
 from training.islands import working_islands
 from training.range_limit import range_limit_band
@@ -129,27 +130,26 @@ def cut(array: np.ndarray, rows, origins: np.ndarray, size: tuple[int, int], fil
 
 
 def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.Generator,
-               noise_level: float, norm: dict, holes: float = 0.0, roll_deg: float = 0.0,
-               islands: float = 0.0, island_discs: bool = False, range_limit: float = 0.0
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+               norm: dict, aug: Augmentations) -> tuple[torch.Tensor, torch.Tensor]:
     """The network input (N, C, h, w) and labels (N, h, w) of one ``crop`` (w, h) of each
-    cached image ``idx``, augmented as ``train.augment`` augments whole images: turned as by
-    a camera rolled U(-``roll_deg``, ``roll_deg``) more (``roll.roll_images``, about the
-    crop's centre), re-drawn axial noise of U(0, ``noise_level``) times the sensor's at the
-    cache's working size (``redrawn_noise.noise_levels``), 0-3 % of pixels dropped, ``holes``
-    of the crops losing depth in blobs (``holes.punch_holes``), outlier islands at up to
-    ``islands`` per 640 x 480 pixel (``islands.working_islands``, scaled by the whole image's
-    width, as discs of their own size with ``island_discs``; drawn last, after the mirror's
-    draw, so 0 leaves the stream as it was), mirrored half the time. The heights come last,
-    from the augmented depths (module docstring): an island moves its pixel's height as a
-    sensor's would. ``range_limit``: that share of the crops cut at a range limit with the
-    truncation their noise gives (``range_limit.range_limit_band``), drawn after the islands.
+    cached image ``idx``, augmented by ``aug`` as ``augment.augment`` augments whole images:
+    turned as by a camera rolled U(-``roll_deg``, ``roll_deg``) more (``roll.roll_images``,
+    about the crop's centre), re-drawn axial noise of U(0, ``noise_level``) times the
+    sensor's at the cache's working size (``redrawn_noise.noise_levels``), 0-3 % of pixels
+    dropped, ``holes`` of the crops losing depth in blobs (``holes.punch_holes``), outlier
+    islands at up to ``islands`` per 640 x 480 pixel (``islands.working_islands``, scaled by
+    the whole image's width, as discs of their own size with ``island_discs``; drawn last,
+    after the mirror's draw, so 0 leaves the stream as it was), mirrored half the time. The
+    heights come last, from the augmented depths (module docstring): an island moves its
+    pixel's height as a sensor's would. ``range_limit``: that share of the crops cut at a
+    range limit with the truncation their noise gives (``range_limit.range_limit_band``),
+    drawn after the islands.
     ``arrays`` must hold ``measure_planes``' answers."""
     idx = np.asarray(idx)
     n, (cw, ch) = len(idx), crop
     full_h, full_w = arrays["depth"].shape[1:]
     origins = crop_origins(arrays["labels"][idx], crop, gen)
-    mx, my = roll_margins(crop, roll_deg) if roll_deg > 0 else (0, 0)
+    mx, my = roll_margins(crop, aug.roll_deg) if aug.roll_deg > 0 else (0, 0)
     window = (cw + 2 * mx, ch + 2 * my)
     corners = origins - np.array([mx, my])
     depth = cut(arrays["depth"], idx, corners, window, 0).float()
@@ -158,8 +158,8 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     grid_v, grid_u = torch.meshgrid(torch.arange(window[1], dtype=torch.float32),
                                     torch.arange(window[0], dtype=torch.float32), indexing="ij")
     u, v = grid_u.expand(n, -1, -1), grid_v.expand(n, -1, -1)
-    if roll_deg > 0:
-        angles = draw_roll(n, roll_deg, gen)
+    if aug.roll_deg > 0:
+        angles = draw_roll(n, aug.roll_deg, gen)
         centre = torch.tensor([(window[0] - 1) / 2, (window[1] - 1) / 2]).expand(n, 2)
         depth, valid, labels, _ = roll_images(angles, None, depth, valid, labels, gen=gen)
         source = roll_sources(angles, centre, torch.ones(n, 2), window[1], window[0])
@@ -168,19 +168,20 @@ def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.
     depth, valid, labels, u, v = (t[inner] for t in (depth, valid, labels, u, v))
     u = u + torch.from_numpy(corners[:, 0]).float()[:, None, None]
     v = v + torch.from_numpy(corners[:, 1]).float()[:, None, None]
-    level = noise_levels(n, (full_h, full_w), noise_level, gen)
+    level = noise_levels(n, (full_h, full_w), aug.noise_level, gen)
     depth = depth + axial_noise(depth, level, gen)
     valid = drop_pixels(valid, gen)
-    if holes > 0:
-        valid, labels = punch_holes(valid, labels, holes, gen)
+    if aug.holes > 0:
+        valid, labels = punch_holes(valid, labels, aug.holes, gen)
     # The mirror is drawn before the islands, so that they leave it as it was.
     flip = (torch.rand(n, generator=gen) < 0.5)[:, None, None]
     camera = image_intrinsics(arrays, idx, norm)     # the islands' focal length and the heights'
-    if islands > 0:
-        depth = working_islands(depth, valid, camera, islands, gen, image_width=full_w,
-                                discs=island_discs)
-    if range_limit > 0:
-        depth, valid = range_limit_band(depth, valid, level, range_limit, gen, (full_h, full_w))
+    if aug.islands > 0:
+        depth = working_islands(depth, valid, camera, aug.islands, gen, image_width=full_w,
+                                discs=aug.island_discs)
+    if aug.range_limit > 0:
+        depth, valid = range_limit_band(depth, valid, level, aug.range_limit, gen,
+                                        (full_h, full_w))
     height = heights_along_rays(depth, valid > 1e-6, u, v, (full_w, full_h),
                                 torch.from_numpy(arrays[PLANE_NORMAL_KEY][idx]),
                                 torch.from_numpy(arrays[PLANE_OFFSET_KEY][idx]),

@@ -1,4 +1,4 @@
-"""Sensor noise and dropout re-drawn on training images, for whole images (``train.augment``)
+"""Sensor noise and dropout re-drawn on training images, for whole images (``augment.augment``)
 and for crops (``crops.crop_batch``) alike: one formula, so both train on the same noise.
 
 Each helper takes the generator and draws exactly what it always drew, in the same order,
