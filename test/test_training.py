@@ -192,6 +192,18 @@ def test_augmentation_moves_the_nearest_depths_with_the_image_and_leaves_the_res
     assert not torch.equal(noisy.nearest, noisy.depth)   # noise drawn on its own
 
 
+def test_a_runs_augmentations_come_field_for_field_from_its_config():
+    """``Augmentations.of_config`` is what links a run's ``aug_*`` options to its batches;
+    five of its fields are interchangeable floats, so each is given a value of its own."""
+    from training.augment import Augmentations
+
+    cfg = TrainConfig(aug_holes=0.1, aug_roll_deg=2.0, aug_islands=3e-4,
+                      aug_islands_discs=True, aug_range_limit=0.4)
+    assert Augmentations.of_config(cfg, 0.7) == Augmentations(
+        noise_level=0.7, holes=0.1, roll_deg=2.0, islands=3e-4, island_discs=True,
+        range_limit=0.4)
+
+
 def test_augmentation_noise_level_zero_adds_no_noise():
     from training.augment import augment
 

@@ -1,13 +1,15 @@
 """Label-honest augmentation of working-size training images, and the batches it makes.
 
-Everything here moves the sensor's picture of a scene, never the scene: a mirror, a shift, a
-roll and a distance change move the labels with the depth; re-drawn noise, dropped pixels,
-holes, outlier islands and the range limit's band change the depth and keep the labels
-(where no depth is left, the label is ignored). ``Augmentations`` says how much of each a
-run draws (``TrainConfig``'s ``aug_*`` fields); ``augment`` draws it on a batch of whole
-images, ``gather_batch`` gathers cached images into that batch, and ``crops.crop_batch``
-does the same for crops. Holes, islands and the band are drawn after everything else and
-draw nothing when off, so a run without them draws as runs did before they existed.
+Everything here changes the sensor's picture of a scene, never the scene: a mirror, a shift
+and a roll move the labels with the depth, a distance change scales the depth alone, and
+re-drawn noise, dropped pixels, holes, outlier islands and the range limit's band change the
+depth and keep the labels (ignored only in holes and in the border a shift or roll
+uncovers). ``Augmentations`` says how much of each a run draws (``TrainConfig``'s ``aug_*``
+fields); ``augment`` draws it on a batch of whole images, ``gather_batch`` gathers cached
+images into that batch, and ``crops.crop_batch`` does the same for crops. In ``augment``
+the holes, islands and band are drawn after everything else (in ``crop_batch`` the holes
+before the mirror's draw), and each draws nothing when off, so a run without them draws as
+runs did before they existed.
 """
 
 from __future__ import annotations
@@ -41,8 +43,9 @@ class Augmentations:
     def of_config(cls, cfg, noise_level: float) -> Augmentations:
         """A ``TrainConfig``'s augmentations at ``noise_level`` (the run's ``aug_noise``,
         scaled to its task's sensor)."""
-        return cls(noise_level, cfg.aug_holes, cfg.aug_roll_deg, cfg.aug_islands,
-                   cfg.aug_islands_discs, cfg.aug_range_limit)
+        return cls(noise_level=noise_level, holes=cfg.aug_holes, roll_deg=cfg.aug_roll_deg,
+                   islands=cfg.aug_islands, island_discs=cfg.aug_islands_discs,
+                   range_limit=cfg.aug_range_limit)
 
 
 class Batch(NamedTuple):
@@ -76,12 +79,12 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
     avoid.
 
     ``nearest`` (N, h, w), the near-side depths, moves with ``depth`` (mirror, shift,
-    distance change) and gets noise of the same level drawn on its own after all the other
-    draws, so the random stream of a run without it is unchanged.
+    distance change) and gets noise of the same level drawn on its own after the depth's
+    noise and dropout (before the holes, islands and band).
 
     ``holes`` (``TrainConfig.aug_holes``): that share of the images loses its depth over
-    ``holes.no_return_holes``, labels ignored there; drawn last, so 0 leaves the stream as
-    it was.
+    ``holes.no_return_holes``, labels ignored there; drawn after the noise (before the
+    islands and band), so 0 leaves the stream as it was.
 
     ``roll_deg`` (``TrainConfig.aug_roll_deg``): each image first turned as by a camera
     rolled U(-roll_deg, roll_deg) about its optical axis (``roll.roll_images``: about the
@@ -95,8 +98,8 @@ def augment(depth: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor,
 
     ``islands`` (``TrainConfig.aug_islands``): outlier islands of wrong depth at up to this
     rate per 640 x 480 pixel (``islands.working_islands``; as discs of their own size with
-    ``island_discs``), labels kept; drawn after everything else, so 0 leaves the stream as
-    it was.
+    ``island_discs``), labels kept; drawn after the holes (before the band), so 0 leaves
+    the stream as it was.
 
     ``range_limit`` (``TrainConfig.aug_range_limit``): that share of the images cut at a
     range limit in their far depths with the truncation their noise gives

@@ -132,18 +132,19 @@ def cut(array: np.ndarray, rows, origins: np.ndarray, size: tuple[int, int], fil
 def crop_batch(arrays: dict, idx: np.ndarray, crop: tuple[int, int], gen: torch.Generator,
                norm: dict, aug: Augmentations) -> tuple[torch.Tensor, torch.Tensor]:
     """The network input (N, C, h, w) and labels (N, h, w) of one ``crop`` (w, h) of each
-    cached image ``idx``, augmented by ``aug`` as ``augment.augment`` augments whole images:
-    turned as by a camera rolled U(-``roll_deg``, ``roll_deg``) more (``roll.roll_images``,
-    about the crop's centre), re-drawn axial noise of U(0, ``noise_level``) times the
-    sensor's at the cache's working size (``redrawn_noise.noise_levels``), 0-3 % of pixels
-    dropped, ``holes`` of the crops losing depth in blobs (``holes.punch_holes``), outlier
-    islands at up to ``islands`` per 640 x 480 pixel (``islands.working_islands``, scaled by
-    the whole image's width, as discs of their own size with ``island_discs``; drawn last,
-    after the mirror's draw, so 0 leaves the stream as it was), mirrored half the time. The
+    cached image ``idx``, augmented by ``aug`` as ``augment.augment`` augments whole images,
+    without its shift and distance change: turned as by a camera rolled
+    U(-``aug.roll_deg``, ``aug.roll_deg``) more (``roll.roll_images``, about the crop's
+    centre), re-drawn axial noise of U(0, ``aug.noise_level``) times the sensor's at the
+    cache's working size (``redrawn_noise.noise_levels``), 0-3 % of pixels dropped,
+    ``aug.holes`` of the crops losing depth in blobs (``holes.punch_holes``), mirrored half
+    the time, then outlier islands at up to ``aug.islands`` per 640 x 480 pixel
+    (``islands.working_islands``, scaled by the whole image's width, as discs of their own
+    size with ``aug.island_discs``; drawn after the mirror's draw, so 0 leaves the stream as
+    it was) and ``aug.range_limit`` of the crops cut at a range limit with the truncation
+    their noise gives (``range_limit.range_limit_band``, drawn after the islands). The
     heights come last, from the augmented depths (module docstring): an island moves its
-    pixel's height as a sensor's would. ``range_limit``: that share of the crops cut at a
-    range limit with the truncation their noise gives (``range_limit.range_limit_band``),
-    drawn after the islands.
+    pixel's height as a sensor's would.
     ``arrays`` must hold ``measure_planes``' answers."""
     idx = np.asarray(idx)
     n, (cw, ch) = len(idx), crop

@@ -2,10 +2,11 @@
 
 Class-weighted cross-entropy ignoring 255 (no depth), AdamW with warm-up + cosine decay, an
 exponential moving average (EMA) of the weights that is validated and shipped, label-honest
-augmentation (``training.augment``, or ``training.crops`` for crops: mirror, small shifts,
-depth scale, re-drawn noise and the sensor's other errors leave labels where the objects
-are), images with an object near the task's inside / partly-inside
-boundary drawn more often (``near_boundary_weight``: where most mistakes are), mixed precision
+augmentation (``training.augment``: mirror, small shifts, depth scale, re-drawn noise and
+the sensor's other errors leave labels where the objects are; ``training.crops`` the same
+on crops, without the shift and scale), images with an object near the task's inside /
+partly-inside boundary drawn more often (``near_boundary_weight``: where most mistakes are),
+mixed precision
 where the hardware does it natively (fp16 on CUDA, bf16 on CPUs with AVX512-BF16/AMX),
 the memory layout (channels-last or contiguous) that steps faster on this machine,
 resumable self-describing checkpoints after every epoch, a training-curve plot.
