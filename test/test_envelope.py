@@ -44,6 +44,22 @@ def _frame(fixture: Fixture, distance: float, elevation: float = 55.0, f: float 
     return depth, Intrinsics(640, 480, f, f, 319.5, 239.5)
 
 
+def _empty_floor(distance: float, elevation: float, f: float = 557.5, max_range: float = 4.0,
+                 noise_per_z2: float = 0.0029) -> tuple[np.ndarray, Intrinsics]:
+    """A level floor and nothing else, seen from ``distance`` m at ``elevation`` degrees,
+    with seeded axial noise of ``noise_per_z2`` z^2 (the default spec's far floor) and no
+    depth beyond ``max_range``."""
+    el = math.radians(elevation)
+    rows = (np.arange(480, dtype=np.float64)[:, None] - 239.5) / f   # image y per unit depth
+    towards_floor = np.cos(el) * rows + np.sin(el) + np.zeros((1, 640))
+    depth = np.where(towards_floor > 1e-6,
+                     distance * np.sin(el) / np.maximum(towards_floor, 1e-6), np.inf)
+    depth = depth + noise_per_z2 * depth ** 2 * np.random.default_rng(0).standard_normal(
+        depth.shape)
+    depth[depth > max_range] = np.inf
+    return depth.astype(np.float32), Intrinsics(640, 480, f, f, 319.5, 239.5)
+
+
 CONTAINER = Fixture(half_x=0.5, half_y=0.5, wall_height=0.25, wall_thickness=0.02,
                     bottom_thickness=0.02, x=0.0, y=0.0, yaw=0.3, base_z=0.0)
 A_TOTE = Fixture(half_x=0.3, half_y=0.2, wall_height=0.2, wall_thickness=0.01,
@@ -78,6 +94,7 @@ def test_frames_of_its_own_envelope_are_inside(segmenter, distance):
     ("container from a tote camera's distance", "median depth"),
     ("a tote on a table, tote camera", "median depth"),
     ("a flat floor, no container", "fixture not seen"),
+    ("an empty level floor seen from inside the envelope", "fixture not seen"),
     ("nothing within range", "median depth 6.00 m"),
     ("a wide-angle camera", "fx 380 px"),
 ])
@@ -90,6 +107,10 @@ def test_frames_outside_the_envelope_are_flagged_with_the_reason(segmenter, case
             {**BOX, "position": [0.0, 0.0, 0.8]},))
     elif case == "a flat floor, no container":
         depth = np.full((480, 640), 2.0, np.float32)
+    elif case == "an empty level floor seen from inside the envelope":
+        # A candidate default model trained with the range limit's band labelled a quarter
+        # of this frame container, so the node would have reported an empty cell as a scene.
+        depth, intrinsics = _empty_floor(distance=2.0, elevation=55.0)
     elif case == "nothing within range":
         depth = np.full((480, 640), 6.0, np.float32)
     else:

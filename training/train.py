@@ -7,8 +7,8 @@ the sensor's other errors leave labels where the objects are; ``training.crops``
 on crops, without the shift and scale), images with an object near the task's inside /
 partly-inside boundary drawn more often (``near_boundary_weight``: where most mistakes are),
 mixed precision where the hardware does it natively (fp16 on CUDA, bf16 on CPUs with
-AVX512-BF16/AMX), the memory layout (channels-last or contiguous) that steps faster on this machine,
-resumable self-describing checkpoints after every epoch, a training-curve plot.
+AVX512-BF16/AMX), the memory layout (channels-last or contiguous) that steps faster on this
+machine, resumable self-describing checkpoints after every epoch, a training-curve plot.
 
 Efficiency on 2 CPU cores (measured, see README): images are decoded and shrunk once into the
 cache (training.dataset.build_cache), so an epoch is pure tensor work; augmentation runs on the
