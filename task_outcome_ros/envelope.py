@@ -41,6 +41,7 @@ FIXTURE_DEPTH_SLACK = (0.7, 1.4)
 MIN_VALID_FRACTION = 0.2     # of the frame's pixels
 MIN_SUPPORT_FRACTION = 0.05  # of the valid working-size pixels within SUPPORT_BAND_M of it
 SUPPORT_BAND_M = 0.01
+FIXTURE_NOT_SEEN = "fixture not seen"  # the reason given when too few pixels are the fixture
 MIN_FIXTURE_FRACTION = 0.01  # of the valid pixels labelled as the fixture
 FOCAL_SLACK = 0.1            # +-10 % beyond the trained focal range
 
@@ -137,7 +138,7 @@ def check(envelope: Envelope | None, stats: FrameStats,
     if stats.support_fraction is not None and stats.support_fraction < MIN_SUPPORT_FRACTION:
         why.append("no support plane found")
     if stats.fixture_fraction < MIN_FIXTURE_FRACTION:
-        why.append("fixture not seen")
+        why.append(FIXTURE_NOT_SEEN)
     flo, fhi = envelope.fixture_depth_range()
     if stats.fixture_depth_m is not None and not flo <= stats.fixture_depth_m <= fhi:
         why.append(f"fixture at {stats.fixture_depth_m:.2f} m, trained "

@@ -170,3 +170,16 @@ def test_transport_monitor_warns_once_when_images_go_missing():
     warnings = [s for s in said if s]
     assert len(warnings) == 1 and "fastdds_shm.xml" in warnings[0]
     assert said.index(warnings[0]) == MIN_INFOS - 1  # as soon as there is enough evidence
+
+
+def test_an_emptied_scene_is_answered_right_only_when_flagged_and_free_of_outcomes():
+    """The robustness suite's ``scene_emptied`` point: no outcome and "fixture not seen"."""
+    from training.robustness import answered_right
+
+    none = {"success": False, "fell_outside": False}
+    assert answered_right(none, none, ["fixture not seen"], emptied=True)
+    assert not answered_right(none, none, [], emptied=True)      # an empty cell as a scene
+    assert not answered_right({**none, "success": True}, none, ["fixture not seen"],
+                              emptied=True)
+    assert answered_right(none, none, [], emptied=False)         # the paper's metric alone
+    assert not answered_right({**none, "success": True}, none, [], emptied=False)

@@ -961,6 +961,16 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
     kept = np.isfinite(holed)
     np.testing.assert_array_equal(holed[kept], depth[kept])
     np.testing.assert_array_equal(holed_labels[kept], labels[kept])
+    emptied, emptied_labels, k_emptied = stressed_frame(episodes[5], outcomes[5], cfg,
+                                                        cfg.seed, Stress(scene_emptied=True),
+                                                        table)
+    assert k_emptied == k                                   # the same camera draw
+    assert set(np.unique(emptied_labels)) <= {0, 255}       # nothing but background left
+    floor = (labels == 0) & np.isfinite(depth) & np.isfinite(emptied)
+    # The same floor, up to the sensor's noise (drawn again on a frame of other content).
+    assert np.median(np.abs(emptied[floor] - depth[floor])) < 0.05
+    stood = (labels == 1) & np.isfinite(depth) & np.isfinite(emptied)   # where the walls were
+    assert stood.sum() > 1000 and np.median(emptied[stood] - depth[stood]) > 0.05  # floor behind
 
     ckpt = make_checkpoint(tmp_path / "success_everywhere.pt", favour=SUCCESS)
     tof, _, _ = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed,
@@ -975,7 +985,7 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
     sweeps = {"camera_roll_deg": (0.0, 10.0), "resolution": ("640x480", "320x240"),
               "resolution_same_depth_error": ("320x240",),
               "sensor_model": ("", "tof", "active_stereo"), "lost_depth_share": (0.0, 0.3),
-              "outlier_islands": (3e-4,)}
+              "outlier_islands": (3e-4,), "scene_emptied": (True,)}
     report = run_robustness(ckpt, small_run, tmp_path / "rob", images=2, sweeps=sweeps,
                             progress=False)
     saved = load_json(tmp_path / "rob" / "robustness.json")

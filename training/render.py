@@ -285,12 +285,16 @@ def episode_scene(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: 
 
 
 def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
-                   table: LabelTable) -> dict:
-    """Camera draw, clean render and noise for one episode; returns arrays and the record."""
+                   table: LabelTable, emptied: bool = False) -> dict:
+    """Camera draw, clean render and noise for one episode; returns arrays and the record.
+    ``emptied``: the same camera and sensor draws with the fixture and the objects left out
+    (the floor, a table, the room and the scenery stay), a cell with nothing to judge."""
     index = episode["episode"]
     fixture = episode_fixture(episode, cfg.scene)
     camera, draws = draw_camera(cfg.camera, fixture, episode_rng(seed, index, "render"))
     boxes, drawn = episode_scene(episode, outcomes, cfg, seed, table)
+    if emptied:
+        boxes = [box for box in boxes if box.label == BACKGROUND]
     clean, labels, cosine = render(boxes, fixture.room_floor_z, camera)
     noisy, noisy_labels, sensor = apply_sensor(clean, labels, cosine, camera, cfg, seed, index)
     record = {

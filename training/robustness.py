@@ -28,7 +28,13 @@ image-level metric. Factors, each swept beyond what training drew:
   an object wholly inside them is not in the image's truth;
 - ``outlier_islands``: islands of wrong depth seeded at this rate per pixel
   (``islands.add_islands``: up to 3 px in radius, each off by up to 4 px of disparity at a
-  0.075 m baseline, nearer or farther), as disparity sensors' wrong matches; labels kept.
+  0.075 m baseline, nearer or farther), as disparity sensors' wrong matches; labels kept;
+- ``scene_emptied``: the same cameras and sensors with the fixture and the objects left out
+  (``render.render_episode``'s ``emptied``), a cell with nothing to judge. Right means what
+  the node owes its user there: no outcome reported, and the frame flagged outside the
+  envelope because the fixture is not seen (``envelope.FIXTURE_NOT_SEEN``). Added after a
+  candidate default model labelled a quarter of an empty floor as container, which no other
+  point could show.
 
 Calibration error the spec draws for camera_info is left out of every point, so that
 ``focal_error`` is the only one. Writes ``robustness.json`` (per factor its values and, at
@@ -48,6 +54,7 @@ import numpy as np
 from tqdm import tqdm
 
 from task_outcome_ros.camera import Intrinsics
+from task_outcome_ros.envelope import FIXTURE_NOT_SEEN
 from task_outcome_ros.inference import OutcomeSegmenter
 from task_outcome_ros.labels import IGNORE, LabelTable, outcomes_present
 from training.chunks import load_chunks
@@ -85,9 +92,10 @@ SWEEPS: dict[str, tuple] = {
     "resolution_same_depth_error": ("640x480", "320x240", "1280x720"),
     "lost_depth_share": (0.0, 0.15, 0.3),
     "outlier_islands": (0.0, 5e-5, 1e-4, 3e-4),
+    "scene_emptied": (False, True),
 }
 # Factors plotted on their own y range (plot_robustness): they may take a model to chance.
-OWN_RANGE_FACTORS = frozenset({"lost_depth_share", "outlier_islands"})
+OWN_RANGE_FACTORS = frozenset({"lost_depth_share", "outlier_islands", "scene_emptied"})
 
 
 @dataclass(frozen=True)
@@ -104,6 +112,7 @@ class Stress:
     resolution_same_depth_error: str = ""   # "WxH", the sensor's errors in metres kept
     lost_depth_share: float = 0.0
     outlier_islands: float = 0.0   # islands of wrong depth per pixel (training/islands.py)
+    scene_emptied: bool = False    # the fixture and the objects left out
 
 
 def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
@@ -117,7 +126,8 @@ def stressed_frame(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
         fixture = dataclasses.replace(fixture, tilt_deg=stress.support_tilt_deg,
                                       tilt_azimuth_deg=azimuth)
     out = render_episode({**episode, "fixture": fixture.to_record()}, outcomes,
-                         _stressed_config(cfg, stress), seed, table)
+                         _stressed_config(cfg, stress), seed, table,
+                         emptied=stress.scene_emptied)
     depth, labels = out["depth"], out["labels"]
     if stress.outlier_islands:
         fx = out["record"]["camera"]["fx"]
@@ -205,7 +215,8 @@ def score_stress(seg: OutcomeSegmenter, items: list[tuple[dict, list[str]]],
                                                    seg.table)
         result = seg.segment(depth, intrinsics)
         truth = outcomes_present(labels, seg.presence_min_pixels, seg.table)
-        if truth != result.present:
+        if not answered_right(result.present, truth, result.outside_envelope,
+                              stress.scene_emptied):
             mistakes.append(int(episode["episode"]))
         flagged += int(bool(result.outside_envelope))
     n = len(items)
@@ -213,6 +224,16 @@ def score_stress(seg: OutcomeSegmenter, items: list[tuple[dict, list[str]]],
     return {"image_all_correct": round(right / n, 4), "images": n,
             "ci95": [round(v, 4) for v in wilson_interval(right, n)],
             "outside_envelope": flagged, "mistakes": mistakes}
+
+
+def answered_right(present: dict[str, bool], truth: dict[str, bool],
+                   outside_envelope: list[str], emptied: bool) -> bool:
+    """The paper's image-level metric (the outcomes present are the truth's); on an emptied
+    scene also the envelope's flag that the fixture is not seen, without which the node
+    would report an empty cell as a scene with no outcome in it."""
+    if present != truth:
+        return False
+    return not emptied or any(FIXTURE_NOT_SEEN in why for why in outside_envelope)
 
 
 def check_sweeps(sweeps: dict[str, tuple]) -> None:
