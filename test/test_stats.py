@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from training.__main__ import main as training_main
-from training.compare import compare_reports, load_result
+from training.compare import compare_reports, load_result, unpaired_points
 from training.stats import exact_mcnemar_p, holm_adjusted, paired_comparison, wilson_interval
 
 pytestmark = pytest.mark.unit
@@ -91,6 +91,17 @@ def test_compare_pairs_evaluations_and_robustness_points_on_the_same_images():
     assert all(r["p_value"] is None for r in old)
     assert old[1]["a"]["all_correct"] == 0.98
     assert old[1]["a"]["ci95"] == pytest.approx(wilson_interval(98, 100))
+
+
+def test_compare_names_the_points_only_one_result_holds():
+    """A suite made before a point was added pairs the rest; the new point is named unpaired."""
+    old, new = _robustness([[], [1]]), _robustness([[], [1]])
+    new["factors"]["scene_emptied"] = {"values": [False, True], "image_all_correct": [1.0, 0.0],
+                                       "mistakes": [[], [1, 2]]}
+    rows = compare_reports("robustness", old, "robustness", new)
+    assert [r["set"] for r in rows] == ["as trained", "support_tilt_deg 3.0"]
+    assert unpaired_points(old, new) == ([], ["scene_emptied True"])
+    assert unpaired_points(new, new) == ([], [])
 
 
 def test_compare_reports_the_training_condition_once():

@@ -103,6 +103,18 @@ def compare_reports(kind_a: str, a: dict, kind_b: str, b: dict) -> list[dict]:
     return rows
 
 
+def unpaired_points(a: dict, b: dict) -> tuple[list[str], list[str]]:
+    """The stress points (``factor value``) only robustness result ``a`` holds and those only
+    ``b`` holds: ``compare_reports`` pairs the others, and a rule over "every suite point"
+    must know when a point, such as one added to the suite since, went unpaired."""
+    def points(report: dict) -> set[str]:
+        return {f"{factor} {value}" for factor, entry in report["factors"].items()
+                for value in entry["values"][1:]}    # the first: the training condition
+
+    only_a, only_b = points(a) - points(b), points(b) - points(a)
+    return sorted(only_a), sorted(only_b)
+
+
 def format_row(row: dict) -> str:
     def rate(side: dict) -> str:
         lo, hi = side["ci95"]
@@ -118,8 +130,13 @@ def format_row(row: dict) -> str:
 
 
 def run_compare(path_a: Path, path_b: Path) -> list[dict]:
-    rows = compare_reports(*load_result(path_a), *load_result(path_b))
+    (kind_a, a), (kind_b, b) = load_result(path_a), load_result(path_b)
+    rows = compare_reports(kind_a, a, kind_b, b)
     print(f"A = {path_a}\nB = {path_b}")
     for row in rows:
         print(format_row(row))
+    if kind_a == "robustness":
+        for side, names in zip("AB", unpaired_points(a, b)):
+            if names:
+                print(f"not compared, only in {side}: {', '.join(names)}")
     return rows
