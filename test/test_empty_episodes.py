@@ -92,3 +92,55 @@ def test_a_run_of_only_empty_episodes_is_a_clear_discovery_error():
 def test_an_empty_share_outside_zero_to_a_half_is_refused(share):
     with pytest.raises(ConfigError, match="empty_share"):
         _spec(empty_share=share).scene.validate()
+
+
+# Empty cells (``scene.empty_cell_share``): the frame rendered with the fixture and the objects
+# left out, a cell with nothing to judge, unlike the empty episodes above.
+
+def _simulated(spec, episode: int) -> dict:
+    world = World(spec.scene)
+    try:
+        return simulate_episode(world, RUN_SEED, episode)
+    finally:
+        world.close()
+
+
+def test_a_spec_without_the_cell_share_never_empties_a_frame_and_the_share_does():
+    from training.render import drawn_empty
+
+    assert _spec().scene.empty_cell_share == 0.0
+    assert not any(drawn_empty(_spec().scene, RUN_SEED, i) for i in range(200))
+    scene = _spec(empty_cell_share=0.25).scene
+    emptied = sum(drawn_empty(scene, RUN_SEED, i) for i in range(2000))
+    assert 400 < emptied < 600      # 500 expected, sd ~19
+
+
+@pytest.mark.parametrize("task", ["default", "tote"])
+def test_an_empty_cell_is_all_background_and_the_other_frames_are_unchanged(task):
+    from training.render import drawn_empty
+
+    with_share, without = _spec(task, empty_cell_share=0.5), _spec(task)
+    table = label_table({"inside", "outside", "partly_inside"}, without)
+    frames = range(12)
+    emptied = [i for i in frames if drawn_empty(with_share.scene, RUN_SEED, i)]
+    assert 0 < len(emptied) < len(frames)
+    for i in frames:
+        record = _simulated(without, i)
+        outcomes = ["success"] * len(record["objects"])
+        shot = render_episode(record, outcomes, with_share, RUN_SEED, table)
+        plain = render_episode(record, outcomes, without, RUN_SEED, table)
+        if i in emptied:
+            assert set(np.unique(shot["labels"])) <= {BACKGROUND, IGNORE}
+            assert shot["record"]["emptied"] and not any(shot["record"]["present"].values())
+            assert shot["record"]["camera"] == plain["record"]["camera"]   # the same view
+            assert (plain["labels"] == FIXTURE).sum() > 1000               # the fixture gone
+        else:
+            assert "emptied" not in shot["record"]
+            np.testing.assert_array_equal(shot["depth"], plain["depth"])
+            np.testing.assert_array_equal(shot["labels"], plain["labels"])
+
+
+@pytest.mark.parametrize("share", [-0.1, 0.6])
+def test_an_empty_cell_share_outside_zero_to_a_half_is_refused(share):
+    with pytest.raises(ConfigError, match="empty_cell_share"):
+        _spec(empty_cell_share=share).scene.validate()

@@ -161,6 +161,15 @@ class SceneConfig:
     neighbour_count: tuple[int, int] = (1, 2)
     neighbour_gap: tuple[float, float] = (0.0, 0.15)
     neighbour_contents: tuple[int, int] = (0, 4)
+    # Share of the frames rendered as an empty cell (render.render_episode's ``emptied``: the
+    # same camera and sensor, the fixture and the objects left out, every pixel background),
+    # drawn per frame from a stream of its own, so a spec without it renders what it did
+    # before. Every frame of a spec without it holds its fixture, and nothing then tells a
+    # model what an empty cell looks like: a default candidate labelled a quarter of an
+    # empty floor as container, the tote model a bare table top as the tote
+    # (docs/evaluation.md, the robustness suite's scene_emptied point). Not ``empty_share``
+    # above, which places no object in a container that is still there.
+    empty_cell_share: float = 0.0
     # Integration and the end of an episode.
     timestep: float = 1.0 / 240.0
     solver_iterations: int = 10
@@ -275,6 +284,7 @@ class SceneConfig:
 
     def _validate_neighbours(self, o: str) -> None:
         _check_range(o, "neighbour_share", self.neighbour_share, 0.0, 1.0)
+        _check_range(o, "empty_cell_share", self.empty_cell_share, 0.0, 0.5)
         _check_interval(o, "neighbour_gap", self.neighbour_gap, 0.0, 2.0)
         for name, bounds in (("neighbour_count", (1, 4)), ("neighbour_contents", (0, 12))):
             pair = getattr(self, name)

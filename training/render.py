@@ -284,12 +284,23 @@ def episode_scene(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: 
     return boxes + [SceneBox(s.half, s.centre, s.rotation, BACKGROUND) for s in scenery], drawn
 
 
+def drawn_empty(scene: SceneConfig, seed: int, index: int) -> bool:
+    """Whether frame ``index`` is rendered as an empty cell: ``scene.empty_cell_share`` of
+    them, from a stream of their own, drawn only when the share is above 0 (a spec without
+    it draws and renders what it did before)."""
+    return scene.empty_cell_share > 0 and bool(
+        episode_rng(seed, index, "empty_cell").random() < scene.empty_cell_share)
+
+
 def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,
-                   table: LabelTable, emptied: bool = False) -> dict:
+                   table: LabelTable, emptied: bool | None = None) -> dict:
     """Camera draw, clean render and noise for one episode; returns arrays and the record.
     ``emptied``: the same camera and sensor draws with the fixture and the objects left out
-    (the floor, a table, the room and the scenery stay), a cell with nothing to judge."""
+    (the floor, a table, the room and the scenery stay), a cell with nothing to judge; None
+    draws it (``drawn_empty``: the spec's ``empty_cell_share`` of the frames)."""
     index = episode["episode"]
+    if emptied is None:
+        emptied = drawn_empty(cfg.scene, seed, index)
     fixture = episode_fixture(episode, cfg.scene)
     camera, draws = draw_camera(cfg.camera, fixture, episode_rng(seed, index, "render"))
     boxes, drawn = episode_scene(episode, outcomes, cfg, seed, table)
@@ -311,6 +322,8 @@ def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed:
         record["sensor"] = sensor
     if drawn is not None:
         record["scenery"] = drawn
+    if emptied:
+        record["emptied"] = True
     if cfg.camera.info_differs:
         record["camera_info"] = draw_camera_info(camera, cfg.camera,
                                                  episode_rng(seed, index, "camera_info"))

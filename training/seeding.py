@@ -15,11 +15,12 @@ import numpy as np
 # a spec with fixed values draws exactly what it drew before; "scenery" what stands around
 # the fixture that nobody placed; "lost_depth" where the robustness suite's frames lose
 # their depth (holes.lose_depth); "empty" whether an episode places nothing; "islands"
-# where the robustness suite's frames get outlier islands (islands.add_islands).
+# where the robustness suite's frames get outlier islands (islands.add_islands);
+# "empty_cell" whether a frame is rendered with no fixture and no object (render.drawn_empty).
 STAGE_STREAMS = {"simulate": 1, "render": 2, "noise": 3, "split": 4, "augment": 5,
                  "fixture": 6, "sensor": 7, "robustness": 8, "sensor_model": 9,
                  "camera_info": 10, "scenery": 11, "lost_depth": 12, "empty": 13,
-                 "islands": 14}
+                 "islands": 14, "empty_cell": 15}
 
 
 def episode_seed(run_seed: int, episode: int, stage: str) -> list[int]:
