@@ -238,6 +238,7 @@ class SceneConfig:
         _check_int(o, "max_objects", self.max_objects, self.min_objects, 8)
         # At most half: discovery clusters the objects of the other episodes.
         _check_range(o, "empty_share", self.empty_share, 0.0, 0.5)
+        _check_range(o, "empty_cell_share", self.empty_cell_share, 0.0, 0.5)  # most show it
         self._validate_shapes(o)
         _check_interval(o, "object_edge", self.object_edge, 0.01, 1.0)
         _check_interval(o, "cylinder_diameter", self.cylinder_diameter, 0.01, 1.0)
@@ -284,7 +285,6 @@ class SceneConfig:
 
     def _validate_neighbours(self, o: str) -> None:
         _check_range(o, "neighbour_share", self.neighbour_share, 0.0, 1.0)
-        _check_range(o, "empty_cell_share", self.empty_cell_share, 0.0, 0.5)
         _check_interval(o, "neighbour_gap", self.neighbour_gap, 0.0, 2.0)
         for name, bounds in (("neighbour_count", (1, 4)), ("neighbour_contents", (0, 12))):
             pair = getattr(self, name)

@@ -34,7 +34,8 @@ image-level metric. Factors, each swept beyond what training drew:
   the node owes its user there: no outcome reported, and the frame flagged outside the
   envelope because the fixture is not seen (``envelope.FIXTURE_NOT_SEEN``). Added after a
   candidate default model labelled a quarter of an empty floor as container, which no other
-  point could show.
+  point could show. Every other point renders each scene whole, also from a run whose spec
+  empties some of its frames (``scene.empty_cell_share``).
 
 Calibration error the spec draws for camera_info is left out of every point, so that
 ``focal_error`` is the only one. Writes ``robustness.json`` (per factor its values and, at
