@@ -38,7 +38,7 @@ from training.fixture import PlacedFixture, _uniform, episode_fixture, euler_rot
 from training.geometry import quat_to_matrix
 from training.noise import apply_kinect_noise
 from training.scenery import draw_neighbours
-from training.seeding import episode_rng, episode_seed
+from training.seeding import drawn_in_share, episode_rng, episode_seed
 from training.stereo import STEREO_MODEL, apply_stereo_noise
 from training.tof import apply_tof_noise
 
@@ -288,8 +288,7 @@ def drawn_empty(scene: SceneConfig, seed: int, index: int) -> bool:
     """Whether frame ``index`` is rendered as an empty cell: ``scene.empty_cell_share`` of
     them, from a stream of their own, drawn only when the share is above 0 (a spec without
     it draws and renders what it did before)."""
-    return scene.empty_cell_share > 0 and bool(
-        episode_rng(seed, index, "empty_cell").random() < scene.empty_cell_share)
+    return drawn_in_share(scene.empty_cell_share, seed, index, "empty_cell")
 
 
 def render_episode(episode: dict, outcomes: list[str], cfg: DatasetConfig, seed: int,

@@ -30,3 +30,9 @@ def episode_seed(run_seed: int, episode: int, stage: str) -> list[int]:
 
 def episode_rng(run_seed: int, episode: int, stage: str) -> np.random.Generator:
     return np.random.default_rng(episode_seed(run_seed, episode, stage))
+
+
+def drawn_in_share(share: float, run_seed: int, episode: int, stage: str) -> bool:
+    """Whether ``episode`` falls in a spec's ``share`` of the episodes, from stream ``stage``
+    of its own, drawn only when the share is above 0: a spec without it draws nothing more."""
+    return share > 0 and bool(episode_rng(run_seed, episode, stage).random() < share)

@@ -23,7 +23,7 @@ from training.chunks import load_chunks, run_chunks
 from training.config import DatasetConfig, SceneConfig
 from training.fixture import PlacedFixture, Region, _uniform, draw_fixture, first_fixture
 from training.geometry import quat_to_matrix
-from training.seeding import episode_rng
+from training.seeding import drawn_in_share, episode_rng
 
 
 def random_quaternion(rng: np.random.Generator) -> list[float]:
@@ -324,8 +324,7 @@ class World:
 def is_empty_episode(scene: SceneConfig, run_seed: int, episode: int) -> bool:
     """Whether nothing is placed in this episode (``scene.empty_share``), from a stream of its
     own: the other episodes are drawn exactly as without the share."""
-    return (scene.empty_share > 0
-            and episode_rng(run_seed, episode, "empty").random() < scene.empty_share)
+    return drawn_in_share(scene.empty_share, run_seed, episode, "empty")
 
 
 def simulate_episode(world: World, run_seed: int, episode: int) -> dict:
