@@ -419,7 +419,9 @@ def _shots(cfg: DatasetConfig, episodes: list[dict], outcomes: list[list[str]],
         depth, labels, cosine = render(boxes, fixture.room_floor_z, cam)
         out.append({"index": i, "episode": ep, "camera": cam, "boxes": boxes, "depth": depth,
                     "labels": labels, "cosine": cosine,
-                    "noisy": render_episode(ep, outcomes[i], cfg, cfg.seed, DEFAULT_TABLE)})
+                    # whole, as rendered above, even where the spec empties the frame
+                    "noisy": render_episode(ep, outcomes[i], cfg, cfg.seed, DEFAULT_TABLE,
+                                            emptied=False)})
     return out
 
 

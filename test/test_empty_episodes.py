@@ -119,7 +119,7 @@ def test_a_spec_without_the_cell_share_never_empties_a_frame_and_the_share_does(
 def test_an_empty_cell_is_all_background_and_the_other_frames_are_unchanged(task):
     from training.render import drawn_empty
 
-    with_share, without = _spec(task, empty_cell_share=0.5), _spec(task)
+    with_share, without = _spec(task, empty_cell_share=0.5), _spec(task, empty_cell_share=0.0)
     table = label_table({"inside", "outside", "partly_inside"}, without)
     frames = range(12)
     emptied = [i for i in frames if drawn_empty(with_share.scene, RUN_SEED, i)]

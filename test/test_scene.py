@@ -41,9 +41,11 @@ def test_bundled_specs_load_and_default_is_the_default_task():
     assert {"default", "tote"} <= set(bundled_scenes())
     default, nominal = load_scene("default"), DatasetConfig()
     # The default spec is the nominal scene with what real cells vary randomised: without
-    # its tilt, roll, calibration error and second sensor it is the configs' defaults, and
-    # every sensor range holds the nominal value.
-    assert dataclasses.replace(default.scene, support_tilt_deg=(0.0, 0.0)) == nominal.scene
+    # its tilt, roll, calibration error, second sensor and empty cells it is the configs'
+    # defaults, and every sensor range holds the nominal value.
+    assert dataclasses.replace(default.scene, support_tilt_deg=(0.0, 0.0),
+                               empty_cell_share=0.0) == nominal.scene
+    assert 0 < default.scene.empty_cell_share <= 0.1     # a few empty cells, most frames judged
     assert dataclasses.replace(default.camera, roll_deg=(0.0, 0.0), info_focal_error=0.0,
                                info_principal_error_px=0.0) == nominal.camera
     assert default.tof.share > 0 and nominal.tof.share == 0

@@ -4,8 +4,8 @@ The Makefile keeps each task's extra training options in ``SHIP_OPTIONS_<task>``
 checkpoint records the ``TrainConfig`` it was trained with. If one moves without the other, a
 user who runs ``make ship`` gets a different model from the one the README's figures describe.
 ``make -n`` prints the command without running it; the command's options go through the
-training CLI's own parser, so the comparison is what ``run`` would really train with, and the
-episodes and seed of its data are checked too.
+training CLI's own parser, so the comparison is what ``run`` would really train with; the
+episodes and seed of its data, and the bundled spec it is made from, are checked too.
 """
 
 from __future__ import annotations
@@ -49,6 +49,7 @@ def test_make_ship_trains_the_shipped_models_recipe(task):
     from task_outcome_ros import checkpoint
     from task_outcome_ros.inference import resolve_model_path
     from training.__main__ import build_parser, resolve_train_config
+    from training.config import dataset_config_from_dict
     from training.scene import load_scene
     from training.train import resume_differences
 
@@ -70,3 +71,10 @@ def test_make_ship_trains_the_shipped_models_recipe(task):
         f"make ship SCENE={task} simulates {episodes} episodes of seed {seed}; the shipped "
         f"model was trained on {recorded['dataset']['episodes']} of seed "
         f"{recorded['dataset']['seed']}")
+    # ... and the bundled spec it simulates and renders is the one the model was trained on
+    # (default model 0.19.0's empty cells, for one, live in the spec, not in the options).
+    trained_on = dataset_config_from_dict(recorded["dataset"])
+    for section in ("scene", "camera", "noise", "tof", "discover"):
+        assert getattr(trained_on, section) == getattr(spec, section), (
+            f"training/scenes/{task}.yaml's {section} differs from what the shipped {task} "
+            "model was trained on")

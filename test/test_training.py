@@ -928,12 +928,14 @@ def test_robustness_re_renders_the_dataset_then_sweeps_each_factor(small_run, tm
     same labels); each factor changes what it should; the report and its plot are written."""
     from training.chunks import load_chunks
     from training.config import dataset_config_from_dict, load_json
-    from training.render import read_pair
+    from training.render import drawn_empty, read_pair
     from training.robustness import Stress, run_robustness, stressed_frame
 
     cfg = dataset_config_from_dict(load_json(small_run / "config.json"))
     episodes = load_chunks(small_run / "simulate", cfg.episodes, cfg.chunk_size)
     outcomes, table = load_outcomes(small_run)
+    # The stored frame is whole (the suite renders every scene whole, the spec's empty cells too).
+    assert not drawn_empty(cfg.scene, cfg.seed, 5)
     depth, labels, k = stressed_frame(episodes[5], outcomes[5], cfg, cfg.seed, Stress(), table)
     stored_depth, stored_labels = read_pair(small_run, 5)
     np.testing.assert_array_equal(labels, stored_labels)
