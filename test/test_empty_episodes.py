@@ -27,6 +27,15 @@ def _spec(task="tote", **fields):
     return dataclasses.replace(base, scene=dataclasses.replace(base.scene, **fields))
 
 
+def _simulated(spec, episode: int) -> dict:
+    """One episode simulated in a world of its own."""
+    world = World(spec.scene)
+    try:
+        return simulate_episode(world, RUN_SEED, episode)
+    finally:
+        world.close()
+
+
 def test_a_spec_without_the_share_never_empties_an_episode():
     scene = _spec().scene
     assert scene.empty_share == 0.0
@@ -67,11 +76,7 @@ def test_an_empty_episode_renders_the_fixture_and_no_outcome():
     spec = _spec(empty_share=0.5)
     table = label_table({"inside", "outside", "partly_inside"}, spec)
     episode = next(i for i in range(50) if is_empty_episode(spec.scene, RUN_SEED, i))
-    world = World(spec.scene)
-    try:
-        record = simulate_episode(world, RUN_SEED, episode)
-    finally:
-        world.close()
+    record = _simulated(spec, episode)
     assert record["objects"] == []
     shot = render_episode(record, [], spec, RUN_SEED, table)
     assert set(np.unique(shot["labels"])) <= {BACKGROUND, FIXTURE, IGNORE}   # IGNORE: no depth
@@ -96,14 +101,6 @@ def test_an_empty_share_outside_zero_to_a_half_is_refused(share):
 
 # Empty cells (``scene.empty_cell_share``): the frame rendered with the fixture and the objects
 # left out, a cell with nothing to judge, unlike the empty episodes above.
-
-def _simulated(spec, episode: int) -> dict:
-    world = World(spec.scene)
-    try:
-        return simulate_episode(world, RUN_SEED, episode)
-    finally:
-        world.close()
-
 
 def test_a_spec_without_the_cell_share_never_empties_a_frame_and_the_share_does():
     from training.render import drawn_empty
