@@ -102,11 +102,11 @@ def test_an_empty_share_outside_zero_to_a_half_is_refused(share):
 # Empty cells (``scene.empty_cell_share``): the frame rendered with the fixture and the objects
 # left out, a cell with nothing to judge, unlike the empty episodes above.
 
-def test_a_spec_without_the_cell_share_never_empties_a_frame_and_the_share_does():
+def test_a_cell_share_of_zero_never_empties_a_frame_and_a_share_does():
     from training.render import drawn_empty
 
-    assert _spec().scene.empty_cell_share == 0.0
-    assert not any(drawn_empty(_spec().scene, RUN_SEED, i) for i in range(200))
+    never = _spec(empty_cell_share=0.0).scene
+    assert not any(drawn_empty(never, RUN_SEED, i) for i in range(200))
     scene = _spec(empty_cell_share=0.25).scene
     emptied = sum(drawn_empty(scene, RUN_SEED, i) for i in range(2000))
     assert 400 < emptied < 600      # 500 expected, sd ~19

@@ -56,6 +56,7 @@ def test_bundled_specs_load_and_default_is_the_default_task():
     assert any(isinstance(getattr(default.noise, n), tuple) for n in NOISE_PARAMETERS)
     tote = load_scene("tote")
     assert tote.task == "tote" and tote.scene.table_size is not None
+    assert 0 < tote.scene.empty_cell_share <= 0.1        # as the default: a few empty cells
     assert set(tote.scene.shapes) == {"box", "cylinder"}
     assert tote.scene.inner_size_x == (0.30, 0.80) and tote.scene.inner_size_y == (0.25, 0.60)
     assert tote.camera.distance == (0.5, 1.3) and tote.camera.elevation_deg == (45.0, 90.0)
