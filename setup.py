@@ -8,7 +8,7 @@ PACKAGE = "task_outcome_ros"
 
 setup(
     name=PACKAGE,
-    version="0.20.0",
+    version="0.21.0",
     packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*", "training", "training.*"]),
     package_data={PACKAGE: ["models/*.pt", "models/*.onnx", "models/*.json"],
                   "training": ["scenes/*.yaml"]},

@@ -5,4 +5,4 @@ else is plain Python so the training pipeline and tests can use it without ROS. 
 imports ``training``: a robot installs this package without the simulator or the clustering.
 """
 
-__version__ = "0.20.0"
+__version__ = "0.21.0"
